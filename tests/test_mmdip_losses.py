@@ -1,0 +1,67 @@
+import math
+
+import pytest
+import torch
+import torchvision
+
+from geoloc.losses.gan import lsgan_d_loss, lsgan_g_loss
+from geoloc.losses.perceptual import VGGPerceptualLoss, resolve_weights
+from geoloc.losses.segmentation import class_weights
+
+
+def test_class_weights_paper_and_authors_formulas():
+    r = [0.5, 0.3, 0.2, 0.0]
+    paper = class_weights(r, "paper")
+    authors = class_weights(r, "authors")
+    for i, rc in enumerate(r):
+        assert paper[i].item() == pytest.approx(1 / math.log(rc + 1 + 0.02), rel=1e-6)
+        assert authors[i].item() == pytest.approx(1 / math.log(100 * rc + 1.02), rel=1e-6)
+    assert torch.equal(class_weights(r), paper)  # the default is the published eq. 1
+    assert paper[3].item() == pytest.approx(50.50, abs=0.01)
+
+
+def test_class_weights_refuse_bad_input():
+    with pytest.raises(ValueError, match="sum to 1"):
+        class_weights([0.5, 0.2])
+    with pytest.raises(ValueError, match="unknown class-weight formula"):
+        class_weights([1.0], "enet")
+
+
+def test_lsgan_losses():
+    ones, zeros = torch.ones(2, 1, 3, 3), torch.zeros(2, 1, 3, 3)
+    assert lsgan_d_loss(ones, zeros).item() == 0.0
+    assert lsgan_d_loss(zeros, ones).item() == 1.0
+    assert lsgan_g_loss(ones).item() == 0.0
+    assert lsgan_g_loss(torch.full((1, 1, 2, 2), 3.0)).item() == 4.0
+
+
+def test_perceptual_loads_a_local_state_dict(tmp_path):
+    torch.manual_seed(123)
+    vgg = torchvision.models.vgg16()
+    path = tmp_path / "vgg16.pth"
+    torch.save(vgg.state_dict(), path)  # a full torchvision-style state dict
+    loss = VGGPerceptualLoss(weights=str(path), layers=("relu1_2", "relu2_2"))
+    assert torch.equal(loss.features[7].weight, vgg.features[7].weight)
+    assert not any(p.requires_grad for p in loss.parameters())
+    feats_only = tmp_path / "features.pth"
+    torch.save(vgg.features.state_dict(), feats_only)  # a features-only state dict loads too
+    assert torch.equal(VGGPerceptualLoss(str(feats_only), ("relu1_2",)).features[2].weight, vgg.features[2].weight)
+
+
+def test_perceptual_loss_is_zero_for_equal_images_and_has_gradient():
+    loss = VGGPerceptualLoss("none", ("relu1_2", "relu2_2"))
+    x = torch.rand(1, 3, 32, 32)
+    assert loss(x, x).item() == 0.0
+    y = torch.rand(1, 3, 32, 32, requires_grad=True)
+    loss(y, x).backward()
+    assert y.grad.abs().sum() > 0
+
+
+def test_perceptual_missing_weights_say_where_to_put_them(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="vgg16-397923af.pth"):
+        resolve_weights("imagenet")
+    with pytest.raises(FileNotFoundError, match="perceptual.weights"):
+        VGGPerceptualLoss(str(tmp_path / "absent.pth"))
+    with pytest.raises(ValueError, match="unknown VGG16 layers"):
+        VGGPerceptualLoss("none", ("relu9_9",))

@@ -1,0 +1,197 @@
+"""A gallery of reference descriptors searchable by inner product: built once, saved, queried later.
+
+Two backends:
+- ``torch``: exact, chunked over queries and references so memory stays bounded; runs on the device the
+  descriptors live on (GPU when there is one).
+- ``faiss`` (the optional ``faiss-cpu`` extra): ``flat`` (exact, ``IndexFlatIP``) or ``ivfpq`` (inverted lists +
+  product quantisation, ``IndexIVFPQ``) for galleries of millions.
+
+Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b.
+"""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["GalleryIndex", "import_faiss", "as_float_tensor"]
+
+_FORMAT = "geoloc.gallery/1"
+
+
+def import_faiss():
+    try:
+        import faiss
+    except ImportError as e:
+        raise ImportError("the faiss backend needs faiss: pip install 'geoloc[faiss]' (or faiss-cpu)") from e
+    return faiss
+
+
+def as_float_tensor(x, name: str) -> torch.Tensor:
+    """numpy array or tensor -> 2-D floating tensor (float64 stays float64; anything else becomes float32)."""
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(x)
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch tensor or a numpy array, got {type(x).__name__}")
+    if x.ndim != 2:
+        raise ValueError(f"{name} must be N x D, got shape {tuple(x.shape)}")
+    if not x.is_floating_point():
+        x = x.float()
+    return x.detach()
+
+
+def _chunk_rows(n_cols: int, budget: int = 1 << 25) -> int:
+    # Rows of an n_cols-wide score block that fit in ``budget`` elements (128 MiB of float32).
+    return max(1, budget // max(n_cols, 1))
+
+
+class GalleryIndex:
+    """Reference descriptors (N x dim) for top-k inner-product search.
+
+    Args:
+        dim: descriptor dimension.
+        backend: ``"torch"`` (exact) or ``"faiss"``.
+        kind: ``"flat"`` (exact) or, with FAISS, ``"ivfpq"``.
+        nlist, m, nbits, nprobe: IVF-PQ parameters: inverted lists, sub-quantisers (must divide dim), bits per
+            code, lists visited per query.
+        device: torch backend only: where the gallery lives (default: where the first added descriptors are).
+        chunk_size: queries per block of the torch search.
+    """
+
+    def __init__(self, dim: int, backend: str = "torch", kind: str = "flat", nlist: int = 1024, m: int = 64,
+                 nbits: int = 8, nprobe: int = 16, device: str | torch.device | None = None,
+                 chunk_size: int = 1024):
+        if backend not in ("torch", "faiss"):
+            raise ValueError(f"backend must be 'torch' or 'faiss', got {backend!r}")
+        if kind not in ("flat", "ivfpq") or (backend == "torch" and kind != "flat"):
+            raise ValueError(f"kind must be 'flat' (torch, faiss) or 'ivfpq' (faiss), got {kind!r} for {backend}")
+        if kind == "ivfpq" and dim % m:
+            raise ValueError(f"ivfpq needs m (sub-quantisers) to divide dim, got dim={dim}, m={m}")
+        self.dim, self.backend, self.kind = int(dim), backend, kind
+        self.params = dict(nlist=int(nlist), m=int(m), nbits=int(nbits), nprobe=int(nprobe))
+        self.chunk_size = int(chunk_size)
+        self._device = torch.device(device) if device is not None else None
+        self._descriptors: torch.Tensor | None = None  # torch backend
+        if self.chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        self._quantizer = None  # the IVF coarse quantiser must outlive the index that points to it
+        self._index = self._new_faiss_index() if backend == "faiss" else None
+
+    def _new_faiss_index(self):
+        faiss = import_faiss()
+        if self.kind == "flat":
+            return faiss.IndexFlatIP(self.dim)
+        p = self.params
+        self._quantizer = faiss.IndexFlatIP(self.dim)
+        index = faiss.IndexIVFPQ(self._quantizer, self.dim, p["nlist"], p["m"], p["nbits"],
+                                 faiss.METRIC_INNER_PRODUCT)
+        index.nprobe = p["nprobe"]
+        return index
+
+    def set_nprobe(self, nprobe: int) -> None:
+        """IVF-PQ: how many inverted lists a query visits (recall against speed)."""
+        self.params["nprobe"] = int(nprobe)
+        if self.kind == "ivfpq":
+            self._index.nprobe = int(nprobe)
+
+    def __len__(self) -> int:
+        if self.backend == "faiss":
+            return int(self._index.ntotal)
+        return 0 if self._descriptors is None else int(self._descriptors.shape[0])
+
+    def _check(self, x, name: str) -> torch.Tensor:
+        x = as_float_tensor(x, name)
+        if x.shape[1] != self.dim:
+            raise ValueError(f"{name} must have dimension {self.dim}, got {x.shape[1]}")
+        return x
+
+    def train(self, descriptors, max_points: int = 200_000, seed: int = 0) -> None:
+        """Train the IVF-PQ quantisers on (a seeded sample of at most ``max_points`` of) the descriptors."""
+        if self.backend != "faiss" or self.kind != "ivfpq":
+            return
+        x = self._check(descriptors, "descriptors")
+        if x.shape[0] > max_points:
+            x = x[torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:max_points]]
+        self._index.train(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
+
+    def add(self, descriptors) -> "GalleryIndex":
+        """Append N x dim descriptors; their row numbers continue from ``len(self)``. Trains IVF-PQ if needed."""
+        x = self._check(descriptors, "descriptors")
+        if self.backend == "faiss":
+            if not self._index.is_trained:
+                self.train(x)
+            self._index.add(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
+            return self
+        if self._device is None:
+            self._device = x.device
+        x = x.to(self._device)
+        self._descriptors = x if self._descriptors is None else torch.cat([self._descriptors, x.to(self._descriptors)])
+        return self
+
+    def search(self, query, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Top-k references per query (Q x dim): (Q x k scores, Q x k row numbers), best first, on the CPU.
+
+        k is capped at ``len(self)``.
+        """
+        q = self._check(query, "query")
+        if len(self) == 0:
+            raise ValueError("search on an empty gallery: add descriptors first")
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        k = min(int(k), len(self))
+        if self.backend == "faiss":
+            scores, idx = self._index.search(np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32), k)
+            return torch.from_numpy(scores), torch.from_numpy(idx)
+        return self._search_torch(q, k)
+
+    def _search_torch(self, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        ref = self._descriptors
+        q = q.to(ref.device, ref.dtype)
+        step = _chunk_rows(self.chunk_size)  # reference rows per block
+        out_s, out_i = [], []
+        for q0 in range(0, q.shape[0], self.chunk_size):
+            qc = q[q0:q0 + self.chunk_size]
+            best_s = torch.empty(qc.shape[0], 0, dtype=ref.dtype, device=ref.device)
+            best_i = torch.empty(qc.shape[0], 0, dtype=torch.long, device=ref.device)
+            for r0 in range(0, ref.shape[0], step):
+                s = qc @ ref[r0:r0 + step].t()
+                cand_s = torch.cat([best_s, s], dim=1)
+                cand_i = torch.cat([best_i, torch.arange(r0, r0 + s.shape[1], device=ref.device).expand_as(s)], 1)
+                best_s, pos = cand_s.topk(min(k, cand_s.shape[1]), dim=1)
+                best_i = cand_i.gather(1, pos)
+            out_s.append(best_s.float().cpu())
+            out_i.append(best_i.cpu())
+        return torch.cat(out_s), torch.cat(out_i)
+
+    def save(self, path: str | Path) -> None:
+        """One file (``torch.save`` of a plain dict) for either backend; reload with ``GalleryIndex.load``."""
+        state = dict(format=_FORMAT, dim=self.dim, backend=self.backend, kind=self.kind, params=self.params,
+                     chunk_size=self.chunk_size)
+        if self.backend == "faiss":
+            faiss = import_faiss()
+            state["faiss_index"] = torch.from_numpy(faiss.serialize_index(self._index))
+        else:
+            state["descriptors"] = None if self._descriptors is None else self._descriptors.cpu()
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(state, tmp)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str | torch.device | None = None) -> "GalleryIndex":
+        """Load a saved gallery; the torch backend goes to ``device`` (default: the CPU)."""
+        buf = io.BytesIO(Path(path).read_bytes())
+        state = torch.load(buf, weights_only=True)
+        if not isinstance(state, dict) or state.get("format") != _FORMAT:
+            raise ValueError(f"{path} is not a geoloc gallery index (expected format {_FORMAT!r})")
+        index = cls(state["dim"], state["backend"], state["kind"], device=device, chunk_size=state["chunk_size"],
+                    **state["params"])
+        if index.backend == "faiss":
+            faiss = import_faiss()
+            index._index = faiss.deserialize_index(state["faiss_index"].numpy())
+            index.set_nprobe(index.params["nprobe"])
+        elif state["descriptors"] is not None:
+            index.add(state["descriptors"])
+        return index

@@ -1,0 +1,113 @@
+"""One sample = one place: build its world, pick the conditions of each view, render.
+
+Every random draw comes from a generator seeded by (seed, split, index) alone, so a sample's pixels do not depend
+on the number of workers or on which samples were generated before it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import traffic as T
+from .aerial import render_aerial
+from .appearance import Conditions, base_conditions, finish, other_time
+from .config import SynthConfig
+from .light import light_world
+from .panorama import CVUSA_HORIZON, SPHERE_HORIZON, panorama_rays
+from .perspective import Pose, jitter_pose, lane_pose, pinhole_rays
+from .places import Place, build_place
+from .sky import Sky
+from .street import render_street
+from .styles import choose_style
+
+SPLITS = {"train": 0, "val": 1}
+
+
+def sample_rngs(seed: int, split: str, index: int, n: int = 8) -> list[np.random.Generator]:
+    ss = np.random.SeedSequence([int(seed), SPLITS[split], int(index)])
+    return [np.random.default_rng(s) for s in ss.spawn(n)]
+
+
+def make_place(cfg: SynthConfig, rng: np.random.Generator) -> Place:
+    style = choose_style(rng, None) if cfg.style == "mix" else cfg.style
+    _, n = cfg.world_cells()
+    place = build_place(rng, style, n * cfg.cell_m, cfg.cell_m)
+    _texture(place.world, rng)
+    return place
+
+
+def _texture(world, rng) -> None:
+    """Per-cell brightness noise so large surfaces are not flat colour."""
+    noise = rng.standard_normal(world.height.shape, np.float32) * 5.0
+    for arr in (world.top, world.wall):
+        arr[...] = np.clip(arr + noise[..., None], 0, 255).astype(np.uint8)
+
+
+def _street_traffic(rng, place: Place, extent, aerial_agents, change: float, keep, radius, density):
+    """The street view's traffic: each aerial agent stays with prob 1-change, fresh agents come with prob change."""
+    kept = [a for a in aerial_agents if rng.random() >= change]
+    fresh = T.sample_traffic(rng, place.roads, place.style, extent, keep, radius, density)
+    return kept + [a for a in fresh if rng.random() < change]
+
+
+def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: bool) -> dict:
+    """Aerial tile + street panorama of one place (cvusa: horizon band; cvact: full sphere).
+
+    -> {'aerial': S x S x 3 uint8 RGB, 'pano': H x W x 3 uint8 RGB, 'pano_labels': H x W uint8 (0..9),
+        'aerial_conditions', 'street_conditions', 'style'}.
+    """
+    r_world, r_cond, r_traffic, r_noise, r_sky, *_ = sample_rngs(seed, split, index)
+    gap = cfg.gap()
+    place = make_place(cfg, r_world)
+    extent = place.world.extent
+    cond_a = base_conditions(r_cond, gap)
+    cond_s = other_time(r_cond, gap, cond_a)
+    agents_a = T.sample_traffic(r_traffic, place.roads, place.style, extent, [(0, 0)], 5.0, cfg.traffic)
+    agents_s = _street_traffic(r_traffic, place, extent, agents_a, gap.resolved()["traffic_change"],
+                               [(0, 0)], 5.0, cfg.traffic)
+
+    world_a = T.stamp(place.world, agents_a)
+    rgb_a, _ = render_aerial(world_a, light_world(world_a, cond_a.sun), cfg.tile_m, cfg.aerial_size,
+                             cond_a.season)
+    world_s = T.stamp(place.world, agents_s)
+    h, w = (cfg.sphere_height, cfg.sphere_width) if sphere else (cfg.pano_height, cfg.pano_width)
+    az, tan_el = panorama_rays(h, w, SPHERE_HORIZON if sphere else CVUSA_HORIZON)
+    rgb_s, cls_s, _ = render_street(world_s, light_world(world_s, cond_s.sun), Sky(r_sky, cond_s.sun),
+                                    (0.0, 0.0, cfg.camera_height), az, tan_el, cond_s.season)
+    return dict(aerial=finish(rgb_a, cond_a, r_noise), pano=finish(rgb_s, cond_s, r_noise), pano_labels=cls_s,
+                aerial_conditions=cond_a, street_conditions=cond_s, style=place.style)
+
+
+def render_view(cfg: SynthConfig, place: Place, pose: Pose, cond: Conditions, agents, sky_rng_seed: int,
+                noise_seed: int) -> dict:
+    """The same pinhole pose twice, with and without the agents, under identical light, sky and sensor noise."""
+    az, tan_el = pinhole_rays(cfg.view_size, cfg.fov_deg, pose.yaw)
+    cam = (pose.x, pose.y, cfg.camera_height)
+    out = {}
+    for name, world in (("static", place.world), ("dynamic", T.stamp(place.world, agents))):
+        sky = Sky(np.random.default_rng(sky_rng_seed), cond.sun)
+        rgb, cls, _ = render_street(world, light_world(world, cond.sun), sky, cam, az, tan_el, cond.season)
+        out[f"rgb_{name}"] = finish(rgb, cond, np.random.default_rng(noise_seed))
+        out[f"label_{name}"] = cls
+    out["mask_dynamic"] = np.where(out["label_dynamic"] >= T.VEHICLE, 255, 0).astype(np.uint8)
+    return out
+
+
+def render_place_views(cfg: SynthConfig, seed: int, split: str, index: int) -> list[dict]:
+    """A reference view and a query view (jittered pose, other time, other traffic) of one place."""
+    r_world, r_cond, r_traffic, r_noise, r_sky, r_pose, *_ = sample_rngs(seed, split, index)
+    gap = cfg.gap()
+    place = make_place(cfg, r_world)
+    extent = place.world.extent
+    ref_pose = lane_pose(place.roads, r_pose)
+    query_pose = jitter_pose(ref_pose, r_pose, cfg.jitter_m, cfg.jitter_yaw)
+    cond_ref = base_conditions(r_cond, gap)
+    cond_q = other_time(r_cond, gap, cond_ref)
+    keep = [(ref_pose.x, ref_pose.y), (query_pose.x, query_pose.y)]
+    views = []
+    for role, pose, cond in (("reference", ref_pose, cond_ref), ("query", query_pose, cond_q)):
+        agents = T.sample_traffic(r_traffic, place.roads, place.style, extent, keep, 7.0, cfg.traffic)
+        seeds = r_noise.integers(2**31, size=2)
+        v = render_view(cfg, place, pose, cond, agents, int(seeds[0]), int(seeds[1]))
+        v.update(role=role, pose=pose, conditions=cond, style=place.style)
+        views.append(v)
+    return views

@@ -1,0 +1,98 @@
+"""Small things the place builders scatter: trees, hedges, fences, poles and signs, crop fields."""
+from __future__ import annotations
+
+import numpy as np
+
+from . import styles as S
+from .classes import FENCES, NONE, OTHERS, VEGETATION
+from .roads import Road, rect
+from .world import World
+
+
+def tree(world: World, rng, x: float, y: float, scale: float = 1.0) -> None:
+    if not world.contains(x, y, 5.0):
+        return
+    r = scale * rng.uniform(1.8, 4.0)
+    world.stamp_dome(x, y, r, h_base=rng.uniform(1.5, 4.0) * scale, h_crown=r * rng.uniform(0.9, 1.6),
+                     cls=VEGETATION, rgb=S.pick(rng, S.TREE, 10))
+
+
+def forest(world: World, rng, c, bearing: float, length: float, width: float, spacing: float) -> None:
+    """Trees on a jittered grid filling a rotated rectangle (centre c, long axis at `bearing`)."""
+    e1, e2 = _axes(bearing)
+    u, v = np.meshgrid(np.arange(-length / 2, length / 2, spacing), np.arange(-width / 2, width / 2, spacing))
+    pts = (np.asarray(c, float)[None] + u.reshape(-1, 1) * e1 + v.reshape(-1, 1) * e2
+           + rng.uniform(-0.4, 0.4, (u.size, 2)) * spacing)
+    half = world.extent / 2 + 4
+    for p in pts[np.abs(pts).max(axis=1) < half]:
+        tree(world, rng, p[0], p[1], rng.uniform(0.8, 1.3))
+
+
+def _axes(bearing: float):
+    a = np.deg2rad(bearing)
+    return np.array([np.sin(a), np.cos(a)]), np.array([np.cos(a), -np.sin(a)])
+
+
+def tree_line(world: World, rng, a, b, spacing: float = 6.0) -> None:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = max(2, int(np.linalg.norm(b - a) / spacing))
+    for s in np.linspace(0, 1, n):
+        if rng.random() < 0.85:
+            p = a + s * (b - a) + rng.normal(0, 0.8, 2)
+            tree(world, rng, p[0], p[1], rng.uniform(0.8, 1.2))
+
+
+def hedge(world: World, rng, pts) -> None:
+    world.draw_polyline(np.asarray(pts, float), max(0.8, world.cell), VEGETATION, S.pick(rng, S.TREE, 8),
+                        rng.uniform(0.8, 1.6))
+
+
+def fence(world: World, rng, pts, rgb=None) -> None:
+    world.draw_polyline(np.asarray(pts, float), max(0.15, world.cell), FENCES,
+                        rgb or S.pick(rng, S.FENCE, 8), rng.uniform(1.0, 1.8))
+
+
+def pole(world: World, rng, x: float, y: float, height: float, rgb=None) -> None:
+    c = rgb or S.pick(rng, S.METAL, 6)
+    world.stamp_column(x, y, height, OTHERS, c, c)
+
+
+def kerb_furniture(world: World, rng, road: Road, spacing: float, sign_p: float = 0.25) -> None:
+    """Street lights / power poles along one or both kerbs, with the odd traffic sign."""
+    p, t, n = road.frames()
+    off = road.half_width + (road.sidewalk_w - 0.6 if road.sidewalk_w > 0 else 1.5)
+    sides = (-1, 1) if road.sidewalk_w > 0 else (int(rng.choice([-1, 1])),)
+    step = max(1, int(spacing))
+    start = int(rng.integers(step))
+    for side in sides:
+        for i in range(start, len(p), step):
+            q = p[i] + side * off * n[i]
+            if not world.contains(q[0], q[1], 1.0):
+                continue
+            pole(world, rng, q[0], q[1], rng.uniform(6.0, 9.0))
+            if rng.random() < sign_p:
+                j = min(len(p) - 1, i + step // 2)
+                s = p[j] + side * off * n[j]
+                world.stamp_box(s[0], s[1], 0.8, max(0.3, world.cell * 1.01), 0.0, rng.uniform(2.2, 3.0), 0.0,
+                                OTHERS, S.pick(rng, [(200, 30, 30), (30, 60, 160), (220, 220, 220)], 10),
+                                S.pick(rng, S.METAL, 6))
+
+
+def field(world: World, rng, c, bearing: float, length: float, width: float, rows_along: bool) -> None:
+    """A crop field (Vegetation, with crop-row stripes) or bare soil (class None: it is not vegetation),
+    filling a rotated rectangle."""
+    poly = rect(c, bearing, length, width)
+    if rng.random() < 0.3:
+        world.fill_polygon(poly, NONE, S.pick(rng, S.SOIL, 8), 0.0)
+        return
+    base = S.pick(rng, S.CROPS, 10)
+    world.fill_polygon(poly, VEGETATION, base, 0.0)
+    dark = tuple(int(v * 0.82) for v in base)
+    e1, e2 = _axes(bearing)
+    if not rows_along:
+        e1, e2, length, width = e2, e1, width, length
+    c = np.asarray(c, float)
+    spacing = rng.uniform(2.0, 4.0)
+    rows = [np.stack([c + s * e2 - (length / 2 - 0.5) * e1, c + s * e2 + (length / 2 - 0.5) * e1])
+            for s in np.arange(-width / 2 + spacing / 2, width / 2 - 0.5, spacing)]
+    world.draw_polylines(rows, max(0.6, world.cell), VEGETATION, dark)

@@ -1,0 +1,29 @@
+"""Street-level rendering shared by the panorama and the pinhole camera: march, shade, fog, sky."""
+from __future__ import annotations
+
+import numpy as np
+
+from .appearance import apply_season
+from .light import Lighting
+from .raymarch import march, sample_distances
+from .sky import Sky
+from .world import World
+
+
+def render_street(world: World, light: Lighting, sky: Sky, cam_xyz, az_deg: np.ndarray, tan_el: np.ndarray,
+                  season: float, fog_dist: float = 450.0):
+    """Rays given by az_deg (W,) and tan_el (H, W) or (H, 1) -> (rgb float H x W x 3 in [0,1], cls H x W,
+    dist H x W horizontal metres, inf for sky)."""
+    d_max = 0.5 * world.extent - np.hypot(cam_xyz[0], cam_xyz[1]) - 2 * world.cell  # stay inside the grid
+    hits = march(world, light, cam_xyz, az_deg, tan_el, sample_distances(world.cell, max(d_max, 5.0)))
+    albedo = apply_season(hits.albedo, hits.cls, season)
+    rgb = albedo * hits.shade[..., None]
+    tan_full = np.broadcast_to(tan_el, hits.cls.shape)
+    az_full = np.broadcast_to(np.asarray(az_deg)[None, :], hits.cls.shape)
+    fog = 1.0 - np.exp(-np.minimum(hits.dist, 1e6) / fog_dist)
+    haze = sky.horizon.astype(np.float32) * 0.95
+    rgb = rgb * (1 - fog[..., None]) + haze * fog[..., None]
+    sky_px = np.isinf(hits.dist) & (tan_full >= 0)
+    if sky_px.any():
+        rgb[sky_px] = sky.color(az_full[sky_px], tan_full[sky_px])
+    return rgb.astype(np.float32), hits.cls, hits.dist

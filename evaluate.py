@@ -1,0 +1,16 @@
+"""Evaluate a checkpoint: python evaluate.py ckpt=outputs/.../best.pt [dataset=cvusa dataset.root=DIR
+dataset.split=val] metrics_out=metrics.json. Model and transforms are rebuilt from the checkpoint's config."""
+
+import hydra
+from omegaconf import DictConfig
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    from geoloc.run import evaluate
+
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,115 @@
+"""Everything distributed lives here: start-up from the environment, rank queries and gathers.
+
+torchrun sets RANK / WORLD_SIZE / LOCAL_RANK / MASTER_ADDR / MASTER_PORT; under SLURM without torchrun we read
+SLURM_PROCID / SLURM_NTASKS / SLURM_LOCALID instead (the address and port must then be exported by the job).
+Rank 0 owns all I/O: logs, checkpoints, pictures.
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+import torch.distributed as dist
+
+
+def _env_int(*names: str, default: int) -> int:
+    for name in names:
+        if name in os.environ:
+            return int(os.environ[name])
+    return default
+
+
+def init_from_env(device: str = "auto") -> torch.device:
+    """Join the process group when launched by torchrun or SLURM, and return this rank's device.
+
+    `device` is "auto", "cpu" or "cuda". On CPU the backend is gloo, on CUDA nccl.
+    """
+    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
+    if use_cuda and not torch.cuda.is_available():
+        raise RuntimeError(f"trainer.device={device!r} but CUDA is not available on this machine; use device=cpu.")
+    world_size = _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1)
+    local_rank = _env_int("LOCAL_RANK", "SLURM_LOCALID", default=0)
+    if world_size > 1 and not dist.is_initialized():
+        os.environ.setdefault("RANK", str(_env_int("RANK", "SLURM_PROCID", default=0)))
+        os.environ.setdefault("WORLD_SIZE", str(world_size))
+        if use_cuda:
+            torch.cuda.set_device(local_rank)
+        dist.init_process_group(backend="nccl" if use_cuda else "gloo")
+    if use_cuda:
+        return torch.device("cuda", local_rank if world_size > 1 else torch.cuda.current_device())
+    return torch.device("cpu")
+
+
+def is_dist() -> bool:
+    return dist.is_available() and dist.is_initialized()
+
+
+def rank() -> int:
+    return dist.get_rank() if is_dist() else 0
+
+
+def world_size() -> int:
+    return dist.get_world_size() if is_dist() else 1
+
+
+def is_main() -> bool:
+    return rank() == 0
+
+
+def barrier() -> None:
+    if is_dist():
+        dist.barrier()
+
+
+def all_gather_nograd(tensor: torch.Tensor) -> torch.Tensor:
+    """Concatenate `tensor` (same shape on every rank) over ranks along dim 0, rank order. No gradient."""
+    if not is_dist():
+        return tensor
+    parts = [torch.empty_like(tensor) for _ in range(world_size())]
+    dist.all_gather(parts, tensor.contiguous())
+    return torch.cat(parts, dim=0)
+
+
+def all_gather_with_grad(tensor: torch.Tensor) -> torch.Tensor:
+    """Like `all_gather_nograd`, but gradients flow back to every rank's slice (torch.distributed.nn).
+
+    Used so the exhaustive triplet loss sees the global batch under DDP.
+    """
+    if not is_dist():
+        return tensor
+    from torch.distributed.nn.functional import all_gather
+
+    return torch.cat(all_gather(tensor.contiguous()), dim=0)
+
+
+def all_gather_variable(tensor: torch.Tensor) -> torch.Tensor:
+    """all_gather for tensors whose first dimension differs between ranks (e.g. the last validation shard)."""
+    if not is_dist():
+        return tensor
+    n = torch.tensor([tensor.shape[0]], device=tensor.device)
+    sizes = all_gather_nograd(n).tolist()
+    padded = torch.zeros((max(sizes), *tensor.shape[1:]), dtype=tensor.dtype, device=tensor.device)
+    padded[: tensor.shape[0]] = tensor
+    gathered = all_gather_nograd(padded)
+    step = max(sizes)
+    return torch.cat([gathered[i * step : i * step + s] for i, s in enumerate(sizes)], dim=0)
+
+
+def reduce_mean(value: float, device: torch.device) -> float:
+    """Average a Python float over ranks (for logging)."""
+    if not is_dist():
+        return value
+    t = torch.tensor([value], dtype=torch.float64, device=device)
+    dist.all_reduce(t)
+    return (t / world_size()).item()
+
+
+def unwrap(model: torch.nn.Module) -> torch.nn.Module:
+    """The one place a DDP wrapper is taken off."""
+    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
+
+
+def cleanup() -> None:
+    if is_dist():
+        dist.destroy_process_group()

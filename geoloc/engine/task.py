@@ -1,0 +1,42 @@
+"""The contract a method implements to run on the Trainer (a LightningModule in miniature).
+
+A task owns its networks and buffers (so `state_dict()` is the whole learnable state, GMS queue included).
+The Trainer owns everything else: devices, epochs, AMP, accumulation, clipping, checkpoints, logging and DDP.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+
+class Task(nn.Module):
+    #: validation metric that selects best.pt (higher is better)
+    monitor: str = "R@1"
+    #: False for tasks with several optimizers that step themselves (GANs); they call engine.backward/step
+    automatic_optimization: bool = True
+
+    def configure_optimizers(self) -> tuple[list[torch.optim.Optimizer], list[Any]]:
+        """Return (optimizers, schedulers). Schedulers are stepped once per epoch."""
+        raise NotImplementedError
+
+    def training_step(self, batch: dict[str, torch.Tensor], engine: Any) -> dict[str, Any]:
+        """One step on one batch. Return {"loss": scalar tensor, **values to log}."""
+        raise NotImplementedError
+
+    def on_train_batch_end(self, outputs: dict[str, Any]) -> None:
+        """Called after the optimizer step (e.g. to push to a queue)."""
+
+    def validation_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Per-sample outputs for one validation batch (first dim = batch)."""
+        raise NotImplementedError
+
+    def validation_epoch_end(self, outputs: dict[str, torch.Tensor]) -> dict[str, float]:
+        """Metrics from all validation outputs, concatenated over batches and ranks in dataset order."""
+        raise NotImplementedError
+
+    def forward(self, batch: dict[str, torch.Tensor], engine: Any) -> dict[str, Any]:
+        # DDP only syncs gradients of what runs inside forward(), so the trainer calls the step through here.
+        return self.training_step(batch, engine)

@@ -1,0 +1,311 @@
+"""The hand-written trainer: epochs, AMP, accumulation, clipping, validation, checkpoints, logging, DDP.
+
+Shaped like a minimal Lightning Fabric loop (see docs/architecture.md for the Task contract):
+
+    trainer = Trainer(cfg.trainer, run_dir, config_yaml)
+    best = trainer.fit(task, train_set, val_set, batch_size=64)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+import geoloc
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.engine import distributed as dist
+from geoloc.engine.logging import RunLogger
+from geoloc.engine.sampling import EpochSampler
+from geoloc.engine.task import Task
+
+
+@dataclass
+class TrainerConfig:
+    max_epochs: int = 10
+    val_every_n_epochs: int = 1
+    precision: str = "32"  # "32" | "bf16" | "16"; AMP applies on CUDA only
+    grad_clip: float = 0.0  # max global grad norm; 0 = off
+    accumulate: int = 1
+    num_workers: int = 0
+    pin_memory: bool = True
+    persistent_workers: bool = True
+    device: str = "auto"  # "auto" | "cpu" | "cuda"
+    seed: int = 0
+    log_every_n_steps: int = 10
+    limit_train_batches: int = 0  # 0 = all
+    channels_last: bool = False
+    compile: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.max_epochs < 1:
+            raise ValueError(f"trainer.max_epochs must be >= 1, got {self.max_epochs}")
+        if self.val_every_n_epochs < 1:
+            raise ValueError(f"trainer.val_every_n_epochs must be >= 1, got {self.val_every_n_epochs}")
+        if self.precision not in ("32", "bf16", "16"):
+            raise ValueError(f"trainer.precision must be one of '32', 'bf16', '16', got {self.precision!r}")
+        if self.accumulate < 1:
+            raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"trainer.device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, NumPy and torch; call before building the task so weight init is reproducible."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class NonFiniteLossError(RuntimeError):
+    """Raised when a loss is NaN or inf; the last good checkpoint is left untouched."""
+
+
+class Engine:
+    """What a task sees of the trainer during a step: one AMP context, backward and step."""
+
+    def __init__(self, trainer: "Trainer"):
+        self._t = trainer
+
+    @property
+    def device(self) -> torch.device:
+        return self._t.device
+
+    @property
+    def epoch(self) -> int:
+        return self._t.epoch
+
+    @property
+    def global_step(self) -> int:
+        return self._t.global_step
+
+    def autocast(self):
+        return self._t.autocast()
+
+    def backward(self, loss: torch.Tensor) -> None:
+        self._t.check_finite(loss)
+        self._t.scaler.scale(loss).backward()
+
+    def step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Unscale, clip, step and zero one optimizer."""
+        t = self._t
+        if t.cfg.grad_clip > 0:
+            t.scaler.unscale_(optimizer)
+            params = [p for group in optimizer.param_groups for p in group["params"]]
+            torch.nn.utils.clip_grad_norm_(params, t.cfg.grad_clip)
+        t.scaler.step(optimizer)
+        t.scaler.update()
+        optimizer.zero_grad(set_to_none=True)
+
+
+class Trainer:
+    def __init__(self, cfg: TrainerConfig, run_dir: str | Path, config_yaml: str = ""):
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.config_yaml = config_yaml
+        self.device = dist.init_from_env(cfg.device)
+        self.amp_dtype = None
+        if self.device.type == "cuda" and cfg.precision != "32":
+            self.amp_dtype = torch.bfloat16 if cfg.precision == "bf16" else torch.float16
+        # GradScaler only matters for fp16; disabled it is a transparent pass-through (one code path).
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp_dtype == torch.float16)
+        self.logger = RunLogger(self.run_dir)
+        self.epoch = 0
+        self.global_step = 0
+        self.best_metric = -math.inf
+        self.best: dict[str, float] = {}
+        self.engine = Engine(self)
+
+    # ---- helpers -------------------------------------------------------------------------------------------
+    def autocast(self):
+        if self.amp_dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=self.amp_dtype)
+
+    def check_finite(self, loss: torch.Tensor) -> None:
+        if not torch.isfinite(loss.detach()).all():
+            raise NonFiniteLossError(
+                f"loss is {loss.item()} at epoch {self.epoch}, step {self.global_step}. The run stopped; the last "
+                f"good checkpoint is {self.run_dir / 'last.pt'} (if an epoch finished). Lower optim.lr, enable "
+                f"trainer.grad_clip, or use trainer.precision=32."
+            )
+
+    def loader(self, dataset: Dataset, batch_size: int, train: bool) -> DataLoader:
+        if batch_size < 1:
+            raise ValueError(f"batch size must be >= 1, got {batch_size}")
+        sampler = EpochSampler(len(dataset), shuffle=train, seed=self.cfg.seed,
+                               rank=dist.rank(), world_size=dist.world_size())
+        workers = self.cfg.num_workers
+        return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
+                          pin_memory=self.cfg.pin_memory and self.device.type == "cuda",
+                          persistent_workers=self.cfg.persistent_workers and workers > 0,
+                          drop_last=train and len(sampler) >= 2 * batch_size)
+
+    def _to_device(self, batch: dict) -> dict:
+        out = {}
+        for k, v in batch.items():
+            if isinstance(v, torch.Tensor):
+                v = v.to(self.device, non_blocking=True)
+                if self.cfg.channels_last and v.ndim == 4 and v.is_floating_point():
+                    v = v.contiguous(memory_format=torch.channels_last)
+            out[k] = v
+        return out
+
+    # ---- checkpoints ---------------------------------------------------------------------------------------
+    def _state(self, task: Task, optimizers, schedulers) -> dict[str, Any]:
+        return {
+            "task": task.state_dict(),
+            "optimizers": [o.state_dict() for o in optimizers],
+            "schedulers": [s.state_dict() for s in schedulers],
+            "scaler": self.scaler.state_dict(),
+            "epoch": self.epoch,
+            "global_step": self.global_step,
+            "best_metric": self.best_metric,
+            "best": self.best,
+            "monitor": task.monitor,
+            "config": self.config_yaml,
+            "rng": ckpt_io.rng_state(),
+            "geoloc_version": geoloc.__version__,
+        }
+
+    def _restore(self, path: Path, task: Task, optimizers, schedulers) -> None:
+        state = ckpt_io.load(path, map_location=self.device)
+        task.load_state_dict(state["task"])
+        for o, s in zip(optimizers, state["optimizers"]):
+            o.load_state_dict(s)
+        for sch, s in zip(schedulers, state["schedulers"]):
+            sch.load_state_dict(s)
+        self.scaler.load_state_dict(state["scaler"])
+        self.epoch = state["epoch"] + 1
+        self.global_step = state["global_step"]
+        self.best_metric = state["best_metric"]
+        self.best = dict(state.get("best", {}))
+        ckpt_io.set_rng_state(state["rng"])
+
+    # ---- the loop ------------------------------------------------------------------------------------------
+    def fit(self, task: Task, train_set: Dataset, val_set: Dataset | None, batch_size: int,
+            val_batch_size: int | None = None, resume: str | Path | None = None) -> dict[str, float]:
+        """Train `task`; return the metrics of the best validation (or of the last epoch without validation)."""
+        task.to(self.device)
+        if self.cfg.channels_last:
+            task.to(memory_format=torch.channels_last)
+        optimizers, schedulers = task.configure_optimizers()
+        if resume:
+            self._restore(Path(resume), task, optimizers, schedulers)
+        model: torch.nn.Module = task
+        if dist.is_dist():
+            if not task.automatic_optimization:
+                raise NotImplementedError("DDP runs need automatic_optimization; run this task on one process.")
+            model = torch.nn.parallel.DistributedDataParallel(
+                task, device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                broadcast_buffers=False)
+        if self.cfg.compile:
+            model = torch.compile(model)
+        train_loader = self.loader(train_set, batch_size, train=True)
+        val_loader = self.loader(val_set, val_batch_size or batch_size, train=False) if val_set else None
+
+        last_val: dict[str, float] = {}
+        for epoch in range(self.epoch, self.cfg.max_epochs):
+            self.epoch = epoch
+            train_loader.sampler.set_epoch(epoch)
+            train_logs = self._train_epoch(model, task, train_loader, optimizers)
+            for s in schedulers:
+                s.step()
+            validate = val_loader is not None and (
+                (epoch + 1) % self.cfg.val_every_n_epochs == 0 or epoch + 1 == self.cfg.max_epochs)
+            if validate:
+                last_val = self.validate(task, val_loader)
+                self.logger.log(last_val, self.global_step, prefix="val/")
+                self._print_metrics(epoch, last_val)
+            improved = validate and last_val.get(task.monitor, -math.inf) > self.best_metric
+            if improved:
+                self.best_metric = last_val[task.monitor]
+                self.best = {**last_val, "epoch": epoch}
+            self.logger.log({**train_logs, "epoch": epoch}, self.global_step, prefix="train/epoch_")
+            if dist.is_main():
+                state = self._state(task, optimizers, schedulers)
+                ckpt_io.save_atomic(state, self.run_dir / "last.pt")
+                if improved or (val_loader is None and epoch + 1 == self.cfg.max_epochs):
+                    ckpt_io.save_atomic(state, self.run_dir / "best.pt")
+            dist.barrier()
+        self.logger.close()
+        return self.best or last_val
+
+    def _train_epoch(self, model, task: Task, loader: DataLoader, optimizers) -> dict[str, float]:
+        model.train()
+        n_batches = len(loader)
+        if self.cfg.limit_train_batches:
+            n_batches = min(n_batches, self.cfg.limit_train_batches)
+        bar = tqdm(total=n_batches, desc=f"epoch {self.epoch}", disable=not (self.cfg.progress and dist.is_main()),
+                   dynamic_ncols=True, leave=False)
+        total, count, t0, samples = 0.0, 0, time.perf_counter(), 0
+        for i, batch in enumerate(loader):
+            if i >= n_batches:
+                break
+            batch = self._to_device(batch)
+            if task.automatic_optimization:
+                with self.autocast():
+                    out = model(batch, self.engine)
+                loss = out["loss"]
+                self.engine.backward(loss / self.cfg.accumulate)
+                if (i + 1) % self.cfg.accumulate == 0 or i + 1 == n_batches:
+                    self.engine.step(optimizers[0])
+            else:
+                out = model(batch, self.engine)
+                loss = out["loss"]
+            task.on_train_batch_end(out)
+            self.global_step += 1
+            total += float(loss.detach())
+            count += 1
+            samples += next(iter(v for v in batch.values() if isinstance(v, torch.Tensor))).shape[0]
+            speed = samples * dist.world_size() / (time.perf_counter() - t0)
+            bar.set_postfix(loss=f"{total / count:.4f}", samples_s=f"{speed:.1f}")
+            bar.update(1)
+            if self.global_step % self.cfg.log_every_n_steps == 0:
+                logs = {k: v for k, v in out.items() if k != "loss" and _is_scalar(v)}
+                logs["loss"] = float(loss.detach())
+                logs["lr"] = optimizers[0].param_groups[0]["lr"]
+                self.logger.log(logs, self.global_step, prefix="train/")
+        bar.close()
+        return {"loss": dist.reduce_mean(total / max(count, 1), self.device),
+                "samples_per_s": samples * dist.world_size() / (time.perf_counter() - t0)}
+
+    @torch.no_grad()
+    def validate(self, task: Task, loader: DataLoader) -> dict[str, float]:
+        """Run validation_step over the (sharded) set, gather in dataset order, then validation_epoch_end."""
+        task.eval()
+        chunks: dict[str, list[torch.Tensor]] = {}
+        for batch in tqdm(loader, desc="validate", leave=False, dynamic_ncols=True,
+                          disable=not (self.cfg.progress and dist.is_main())):
+            batch = self._to_device(batch)
+            with self.autocast():
+                out = task.validation_step(batch)
+            for k, v in out.items():
+                chunks.setdefault(k, []).append(v.float() if v.is_floating_point() else v)
+        outputs = {k: dist.all_gather_variable(torch.cat(v)) for k, v in chunks.items()}
+        if dist.is_dist():  # shards are strided over ranks: put the samples back in dataset order
+            order = torch.argsort(outputs["index"])
+            outputs = {k: v[order] for k, v in outputs.items()}
+        metrics = task.validation_epoch_end(outputs)
+        task.train()
+        return metrics
+
+    def _print_metrics(self, epoch: int, metrics: dict[str, float]) -> None:
+        if dist.is_main():
+            text = "  ".join(f"{k} {v * 100:.2f}" if k.startswith("R@") else f"{k} {v:.4g}"
+                             for k, v in metrics.items() if isinstance(v, float))
+            tqdm.write(f"[epoch {epoch}] {text}")
+
+
+def _is_scalar(v: Any) -> bool:
+    return isinstance(v, (int, float)) or (isinstance(v, torch.Tensor) and v.numel() == 1)

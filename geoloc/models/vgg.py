@@ -1,0 +1,90 @@
+"""VGG16 trunk with taps at conv3_3, conv4_3 and conv5_3, and offline-only ImageNet weight loading."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+from torchvision.models import vgg16
+
+# The file torchvision's VGG16_Weights.IMAGENET1K_V1 downloads into the hub cache.
+IMAGENET_FILE = "vgg16-397923af.pth"
+_TAPS = {"conv3_3": 15, "conv4_3": 22, "conv5_3": 29}  # index of the ReLU after each conv in vgg16().features
+
+
+class MissingWeightsError(FileNotFoundError):
+    pass
+
+
+def imagenet_weights_path(weights_path: str | None = None) -> Path:
+    """Where VGG16 ImageNet weights are read from: an explicit file, else torchvision's hub cache.
+
+    Nothing is downloaded: these machines are often offline, and a silent download would change results.
+    """
+    if weights_path:
+        path = Path(weights_path).expanduser()
+        if not path.is_file():
+            raise MissingWeightsError(f"model.weights_path={weights_path!r} does not exist. Point it at a VGG16 "
+                                      f"ImageNet state dict such as torchvision's {IMAGENET_FILE}.")
+        return path
+    path = Path(torch.hub.get_dir()) / "checkpoints" / IMAGENET_FILE
+    if not path.is_file():
+        raise MissingWeightsError(
+            f"ImageNet VGG16 weights not found offline at {path}. Download {IMAGENET_FILE} (torchvision "
+            f"VGG16_Weights.IMAGENET1K_V1) on a connected machine and copy it there, or set "
+            f"model.weights_path=/path/to/{IMAGENET_FILE}; or train from scratch with model.pretrained=false.")
+    return path
+
+
+def load_imagenet_features(features: nn.Sequential, weights_path: str | None = None) -> None:
+    """Copy the conv weights of a torchvision VGG16 state dict into `features` (the classifier is unused)."""
+    path = imagenet_weights_path(weights_path)
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    conv = {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
+    if not conv:
+        raise ValueError(f"{path} holds no 'features.*' keys; it is not a torchvision VGG16 state dict.")
+    missing, unexpected = features.load_state_dict(conv, strict=False)
+    if missing or unexpected:
+        raise ValueError(f"{path} does not fit this VGG16 trunk (missing {missing[:3]}, unexpected "
+                         f"{unexpected[:3]}). ImageNet weights need model.width=1.0.")
+
+
+class VGG16Trunk(nn.Module):
+    """VGG16 conv layers up to conv5_3 (no pool5), returning the three tapped maps.
+
+    `width` scales every layer's channels (1.0 is the real VGG16; smaller widths train on a CPU).
+    Input B×3×H×W; outputs conv3_3 (B×256w×H/4×W/4), conv4_3 (B×512w×H/8×W/8), conv5_3 (B×512w×H/16×W/16).
+    """
+
+    def __init__(self, width: float = 1.0, pretrained: bool = False, weights_path: str | None = None):
+        super().__init__()
+        features = vgg16(weights=None).features[: _TAPS["conv5_3"] + 1]
+        if width != 1.0:
+            features = _scaled(features, width)
+        if pretrained:
+            if width != 1.0:
+                raise ValueError("model.pretrained=true needs model.width=1.0 (ImageNet weights are full width).")
+            load_imagenet_features(features, weights_path)
+        self.features = features
+        self.channels = [features[_TAPS[name] - 1].out_channels for name in ("conv3_3", "conv4_3", "conv5_3")]
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        taps = []
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in (_TAPS["conv3_3"], _TAPS["conv4_3"], _TAPS["conv5_3"]):
+                taps.append(x)
+        return taps
+
+
+def _scaled(features: nn.Sequential, width: float) -> nn.Sequential:
+    layers, in_ch = [], 3
+    for layer in features:
+        if isinstance(layer, nn.Conv2d):
+            out_ch = max(4, round(layer.out_channels * width))
+            layers.append(nn.Conv2d(in_ch, out_ch, kernel_size=3, padding=1))
+            in_ch = out_ch
+        else:
+            layers.append(layer)
+    return nn.Sequential(*layers)

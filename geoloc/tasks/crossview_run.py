@@ -1,0 +1,112 @@
+"""Builds the cross-view run from a config: data, task, trainer (train) and from a checkpoint (evaluate)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc.config import ConfigError, checked, to_yaml
+from geoloc.data import crossview as data
+from geoloc.engine import Trainer, TrainerConfig, seed_everything
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.engine import distributed as dist
+from geoloc.models.crossview import CrossViewModelConfig
+from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
+
+# transform settings that must match what the network was trained on; evaluate always takes them from the ckpt
+TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
+
+
+def build_task(cfg: DictConfig) -> CrossViewTask:
+    return CrossViewTask(checked(cfg.model, CrossViewModelConfig, "model"),
+                         checked(cfg.loss, TripletLossConfig, "loss"),
+                         checked(cfg.optim, OptimConfig, "optim"))
+
+
+def train(cfg: DictConfig, run_dir: Path) -> dict:
+    data_cfg = checked(cfg.dataset, data.CrossViewDataConfig, "dataset")
+    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
+    seed_everything(trainer_cfg.seed)
+    task = build_task(cfg)  # fails on a bad model/loss/optim config before any data is generated
+    train_set = data.build(data_cfg, "train", train=True)
+    val_set = data.build(data_cfg, "val", train=False)
+    trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))
+    best = trainer.fit(task, train_set, val_set, batch_size=data_cfg.batch_size,
+                       val_batch_size=data_cfg.val_batch_size or None, resume=cfg.get("ckpt"))
+    if dist.is_main():
+        print_table(best, f"best validation (epoch {best.get('epoch')}), {len(val_set)} queries")
+        print(f"checkpoints: {run_dir / 'best.pt'}  {run_dir / 'last.pt'}")
+        if cfg.get("figures", True) and (run_dir / "best.pt").is_file():
+            from geoloc.eval.figures import crossview_figures
+
+            state = ckpt_io.load(run_dir / "best.pt")
+            load_task_state(task, state, run_dir / "best.pt")
+            crossview_figures(task, val_set, run_dir, trainer.device, data_cfg.val_batch_size or data_cfg.batch_size)
+    return best
+
+
+def evaluate(cfg: DictConfig, state: dict) -> dict:
+    """Rebuild model and transforms from the checkpoint's config, score a split, write `metrics_out`."""
+    stored = OmegaConf.create(state["config"])
+    data_section = merged_dataset(stored.dataset, cfg.get("dataset"))
+    data_cfg = checked(data_section, data.CrossViewDataConfig, "dataset")
+    task = build_task(stored)
+    load_task_state(task, state, cfg.ckpt)
+    device = dist.init_from_env(cfg.get("device", "auto"))
+    dataset = data.build(data_cfg, data_cfg.split, train=False)
+    trainer = Trainer(TrainerConfig(device=str(device.type), num_workers=cfg.get("num_workers", 0),
+                                    progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
+    task.to(trainer.device)
+    loader = trainer.loader(dataset, data_cfg.val_batch_size or data_cfg.batch_size, train=False)
+    metrics = trainer.validate(task, loader)
+    metrics["num_queries"] = len(dataset)
+    if dist.is_main():
+        print_table(metrics, f"{data_cfg.name} {data_cfg.split} ({len(dataset)} queries), ckpt {cfg.ckpt}")
+        if cfg.get("metrics_out"):
+            out = Path(cfg.metrics_out)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(metrics, indent=2) + "\n")
+    return metrics
+
+
+def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:
+    """The stored dataset config, overlaid with what the user asked for at evaluation (name, root, split...),
+    except the transform keys, which must stay as trained."""
+    section = OmegaConf.to_container(stored, resolve=True)
+    for key, value in (OmegaConf.to_container(requested, resolve=True) if requested else {}).items():
+        if value is not None and key not in TRANSFORM_KEYS:
+            section[key] = value
+    if requested and requested.get("name") and requested.get("name") != stored.get("name") and not requested.get(
+            "root") and requested.get("name") != "synthetic":
+        raise ConfigError(f"dataset={requested.name} needs dataset.root=/path/to/{requested.name.upper()}")
+    return OmegaConf.create(section)
+
+
+def load_task_state(task: torch.nn.Module, state: dict, path) -> None:
+    """load_state_dict with a readable error when the checkpoint's network doesn't match the config."""
+    own = task.state_dict()
+    saved = state["task"]
+    missing = [k for k in own if k not in saved]
+    unexpected = [k for k in saved if k not in own]
+    shapes = [f"{k}: ckpt {tuple(saved[k].shape)} vs model {tuple(v.shape)}"
+              for k, v in own.items() if k in saved and saved[k].shape != v.shape]
+    if missing or unexpected or shapes:
+        raise ConfigError(
+            f"checkpoint {path} does not match the model built from its config: {len(missing)} missing, "
+            f"{len(unexpected)} unexpected, {len(shapes)} mis-shaped tensors (e.g. "
+            f"{(shapes or missing or unexpected)[:3]}). Was it written by another task or an edited config? "
+            f"Evaluate it with the config it was trained with.")
+    task.load_state_dict(saved)
+
+
+def print_table(metrics: dict, title: str) -> None:
+    keys = [k for k in metrics if k.startswith("R@")]
+    print(f"\n{title}")
+    print("| " + " | ".join(keys) + " |")
+    print("|" + "---|" * len(keys))
+    print("| " + " | ".join(f"{metrics[k] * 100:.2f}" for k in keys) + " |")
+
+

@@ -1,0 +1,54 @@
+"""Shared fixtures: tiny datasets on disk and composed Hydra configs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+REPO = Path(__file__).resolve().parents[1]
+CONF = REPO / "conf"
+REALDATA = REPO.parent / "shared" / "realdata"
+
+
+def write_cvusa(root: Path, n_train: int, n_val: int, aerial: int = 64, pano=(32, 128), seed: int = 0) -> Path:
+    """A CVUSA-layout folder of random images (no learning signal needed, just the format)."""
+    rng = np.random.default_rng(seed)
+    for sub in ("bingmap/19", "streetview/panos", "streetview/annotations", "splits"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i in range(1, n_train + n_val + 1):
+        name = f"{i:07d}"
+        cv2.imwrite(str(root / f"bingmap/19/{name}.jpg"), rng.integers(0, 255, (aerial, aerial, 3), np.uint8))
+        cv2.imwrite(str(root / f"streetview/panos/{name}.jpg"), rng.integers(0, 255, (*pano, 3), np.uint8))
+        cv2.imwrite(str(root / f"streetview/annotations/{name}.png"), np.zeros(pano, np.uint8))
+        rows.append(f"bingmap/19/{name}.jpg,streetview/panos/{name}.jpg,streetview/annotations/{name}.png\n")
+    (root / "splits/train-19zl.csv").write_text("".join(rows[:n_train]))
+    (root / "splits/val-19zl.csv").write_text("".join(rows[n_train:]))
+    return root
+
+
+@pytest.fixture
+def tiny_cvusa(tmp_path) -> Path:
+    return write_cvusa(tmp_path / "cvusa", n_train=12, n_val=8)
+
+
+TINY = [
+    "dataset=cvusa", "dataset.aerial_size=32", "dataset.pano_size=[16,64]", "dataset.batch_size=4",
+    "dataset.val_batch_size=4", "model.width=0.0625", "model.pretrained=false", "model.dim=16",
+    "model.scale_channels=4", "model.proj_channels=4", "model.pool=2", "loss.queue_size=8",
+    "trainer.num_workers=0", "trainer.progress=false", "trainer.device=cpu", "figures=false",
+]
+
+
+def compose_train(overrides: list[str]):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def compose_evaluate(overrides: list[str]):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("evaluate", overrides=overrides)

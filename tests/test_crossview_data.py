@@ -1,0 +1,103 @@
+"""Split readers, alignment switch, start-up file validation, and the real samples (skipped when absent)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import REALDATA
+from scipy.io import savemat
+
+from geoloc.data import crossview
+from geoloc.data.crossview import CrossViewDataConfig
+from geoloc.data.splits import cvact_pairs, cvusa_pairs
+from geoloc.data.validate import DatasetFileError
+
+
+def cfg(root, **kw):
+    base = dict(name="cvusa", root=str(root), aerial_size=32, pano_size=[16, 64], check_files="decode")
+    return CrossViewDataConfig(**{**base, **kw})
+
+
+def test_cvusa_split_rows_map_to_pano_and_aerial(tiny_cvusa):
+    pairs = cvusa_pairs(tiny_cvusa, "val")
+    assert len(pairs) == 8
+    street, aerial = pairs[0]
+    assert street == tiny_cvusa / "streetview/panos/0000013.jpg"
+    assert aerial == tiny_cvusa / "bingmap/19/0000013.jpg"
+
+
+@pytest.mark.parametrize("alignment,q_shape,r_shape", [
+    ("ipt", (3, 32, 32), (3, 32, 32)), ("polar", (3, 16, 64), (3, 16, 64)), ("none", (3, 16, 64), (3, 32, 32))])
+def test_alignment_switch_sets_the_shapes(tiny_cvusa, alignment, q_shape, r_shape):
+    ds = crossview.build(cfg(tiny_cvusa, alignment=alignment), "train", train=True)
+    item = ds[(3, 0)]
+    assert item["query"].shape == q_shape and item["reference"].shape == r_shape and item["index"] == 3
+
+
+def test_augmentation_is_a_function_of_seed_epoch_and_index(tiny_cvusa):
+    ds = crossview.build(cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3), "train", train=True)
+    assert torch.equal(ds[(2, 5)]["query"], ds[(2, 5)]["query"])
+    assert not torch.equal(ds[(2, 5)]["query"], ds[(2, 6)]["query"])
+    val = crossview.build(cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3), "val", train=False)
+    assert torch.equal(val[(2, 5)]["query"], val[(2, 6)]["query"])  # no augmentation at validation
+
+
+def test_missing_and_broken_files_are_counted_and_named(tiny_cvusa):
+    (tiny_cvusa / "bingmap/19/0000014.jpg").unlink()
+    (tiny_cvusa / "streetview/panos/0000015.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(DatasetFileError) as err:
+        crossview.build(cfg(tiny_cvusa), "val", train=False)
+    text = str(err.value)
+    assert "2 of 16 files of split 'val'" in text and str(tiny_cvusa) in text
+    assert "0000014.jpg (missing)" in text and "0000015.jpg (does not decode)" in text
+
+
+def test_missing_split_file_names_the_root(tmp_path):
+    with pytest.raises(FileNotFoundError, match="train-19zl.csv"):
+        cvusa_pairs(tmp_path, "train")
+
+
+def write_act_mat(root, ids, train, val):
+    savemat(root / "ACT_data.mat", {
+        "panoIds": np.array(ids, dtype=object),
+        "trainSet": {"trainInd": np.array(train, dtype=np.float64).reshape(-1, 1)},
+        "valSet": {"valInd": np.array(val, dtype=np.float64).reshape(-1, 1)},
+        "valSetAll": {"valInd": np.array(val, dtype=np.float64).reshape(-1, 1)},
+        "utm": np.zeros((len(ids), 2)),
+    })
+
+
+def test_cvact_indices_are_one_based(tmp_path):
+    write_act_mat(tmp_path, ["a", "b", "c"], train=[1, 2], val=[3])
+    pairs = cvact_pairs(tmp_path, "val")
+    assert pairs == [(tmp_path / "ANU_data_small/streetview/c_grdView.jpg",
+                      tmp_path / "ANU_data_small/satview_polish/c_satView_polish.jpg")]
+    assert cvact_pairs(tmp_path, "test")[0][0].parent.parent.name == "ANU_data_test"
+    write_act_mat(tmp_path, ["a"], train=[0], val=[1])
+    with pytest.raises(ValueError, match="1-based"):
+        cvact_pairs(tmp_path, "train")
+
+
+@pytest.mark.skipif(not (REALDATA / "cvusa_mini").is_dir(), reason="../shared/realdata not present")
+def test_real_cvusa_samples_load_and_transform():
+    ds = crossview.build(CrossViewDataConfig(name="cvusa", root=str(REALDATA / "cvusa_mini"), aerial_size=288),
+                         "val", train=False)
+    assert len(ds) >= 1
+    item = ds[0]
+    assert item["query"].shape == item["reference"].shape == (3, 288, 288)
+    assert torch.isfinite(item["query"]).all()
+
+
+@pytest.mark.skipif(not (REALDATA / "cvact_mini").is_dir(), reason="../shared/realdata not present")
+def test_real_cvact_sample_loads_with_a_written_act_data_mat(tmp_path):
+    root = tmp_path / "cvact"
+    root.mkdir()
+    (root / "ANU_data_small").symlink_to(REALDATA / "cvact_mini" / "ANU_data_small")
+    write_act_mat(root, ["sample01"], train=[1], val=[1])
+    ds = crossview.build(CrossViewDataConfig(name="cvact", root=str(root), aerial_size=128), "val", train=False)
+    street, _ = ds.load(0)
+    full = cv2.imread(str(REALDATA / "cvact_mini/ANU_data_small/streetview/sample01_grdView.jpg"))
+    assert street.shape[0] == full.shape[0] // 2  # the horizon band rows 208:624 of 832
+    assert ds[0]["query"].shape == (3, 128, 128)

@@ -1,0 +1,109 @@
+"""A tiny CPU train → kill → resume → evaluate run, end to end, in seconds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from conftest import TINY, compose_evaluate, compose_train
+
+from geoloc import run
+from geoloc.engine import NonFiniteLossError
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.tasks.crossview import CrossViewTask
+
+
+def train_cfg(root, run_dir, *extra):
+    return compose_train([*TINY, f"dataset.root={root}", f"run_dir={run_dir}", *extra])
+
+
+def val_records(run_dir):
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    return [json.loads(x) for x in lines if '"val/R@1"' in x]
+
+
+def test_kill_and_resume_reproduce_the_uninterrupted_run(tiny_cvusa, tmp_path, monkeypatch):
+    full = tmp_path / "full"
+    run.train(train_cfg(tiny_cvusa, full, "trainer.max_epochs=3"))
+
+    # the same run, killed in the middle of its second epoch
+    killed = tmp_path / "killed"
+    original = CrossViewTask.training_step
+
+    def dying_step(self, batch, engine):
+        if engine.epoch == 1 and engine.global_step == 4:
+            raise KeyboardInterrupt("simulated kill")
+        return original(self, batch, engine)
+
+    monkeypatch.setattr(CrossViewTask, "training_step", dying_step)
+    with pytest.raises(KeyboardInterrupt):
+        run.train(train_cfg(tiny_cvusa, killed, "trainer.max_epochs=3"))
+    monkeypatch.setattr(CrossViewTask, "training_step", original)
+    assert ckpt_io.load(killed / "last.pt")["epoch"] == 0  # the last good checkpoint survived the kill
+
+    resumed = tmp_path / "resumed"
+    run.train(train_cfg(tiny_cvusa, resumed, "trainer.max_epochs=3", f"ckpt={killed / 'last.pt'}"))
+
+    a, b = ckpt_io.load(full / "last.pt"), ckpt_io.load(resumed / "last.pt")
+    assert a["epoch"] == b["epoch"] == 2
+    for key, tensor in a["task"].items():
+        assert torch.equal(tensor, b["task"][key]), key  # bit-exact on CPU, GMS queue buffers included
+    full_val, resumed_val = val_records(full), val_records(resumed)
+    assert full_val[-1]["val/R@1"] == resumed_val[-1]["val/R@1"]
+    assert full_val[-1]["val/R@1%"] == resumed_val[-1]["val/R@1%"]
+
+    # evaluate.py reproduces the best epoch's validation numbers from best.pt
+    out = tmp_path / "metrics.json"
+    metrics = run.evaluate(compose_evaluate([f"ckpt={full / 'best.pt'}", f"metrics_out={out}", "progress=false",
+                                             f"run_dir={tmp_path / 'eval'}"]))
+    saved = json.loads(out.read_text())
+    assert saved["num_queries"] == 8 and set(saved) >= {"R@1", "R@5", "R@10", "R@1%"}
+    best = ckpt_io.load(full / "best.pt")
+    best_epoch_val = [r for r in full_val if r["val/R@1"] == best["best_metric"]][0]
+    for key in ("R@1", "R@5", "R@10", "R@1%"):
+        assert metrics[key] == pytest.approx(best_epoch_val[f"val/{key}"], abs=1e-9)
+
+
+def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(tiny_cvusa, tmp_path, monkeypatch):
+    original = CrossViewTask.training_step
+
+    def nan_step(self, batch, engine):
+        out = original(self, batch, engine)
+        if engine.epoch == 1:
+            out["loss"] = out["loss"] * float("nan")
+        return out
+
+    monkeypatch.setattr(CrossViewTask, "training_step", nan_step)
+    run_dir = tmp_path / "nan"
+    with pytest.raises(NonFiniteLossError, match="loss is nan"):
+        run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=3"))
+    state = ckpt_io.load(run_dir / "last.pt")
+    assert state["epoch"] == 0
+    assert all(torch.isfinite(v).all() for v in state["task"].values() if v.is_floating_point())
+
+
+def test_evaluate_refuses_a_checkpoint_that_does_not_match_its_config(tiny_cvusa, tmp_path):
+    run_dir = tmp_path / "run"
+    run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=1"))
+    state = ckpt_io.load(run_dir / "best.pt")
+    state["config"] = state["config"].replace("dim: 16", "dim: 32")
+    bad = tmp_path / "bad.pt"
+    ckpt_io.save_atomic(state, bad)
+    with pytest.raises(ValueError, match="does not match the model built from its config"):
+        run.evaluate(compose_evaluate([f"ckpt={bad}", "progress=false", f"run_dir={tmp_path / 'e'}"]))
+
+
+def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
+    path = tmp_path / "last.pt"
+    ckpt_io.save_atomic({"x": torch.ones(3)}, path)
+
+    def broken_save(obj, f):
+        f.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError):
+        ckpt_io.save_atomic({"x": torch.zeros(3)}, path)
+    assert torch.equal(ckpt_io.load(path)["x"], torch.ones(3))  # the old file is intact
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]  # no temp file left behind

@@ -1,0 +1,22 @@
+"""Train a geoloc task. `python train.py` runs the embedded default (cross-view on synthetic data).
+
+Examples: python train.py dataset=cvusa dataset.root=/data/CVUSA
+          python train.py task=mmdip
+          python train.py -m dataset.alignment=ipt,none   (an ablation sweep)
+          torchrun --nproc_per_node=2 train.py trainer.device=cpu
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+def main(cfg: DictConfig) -> float:
+    from geoloc.run import train
+
+    best = train(cfg)
+    return float(best.get("R@1", 0.0))  # the value Hydra sweepers optimise
+
+
+if __name__ == "__main__":
+    main()

@@ -86,20 +86,26 @@ def test_hardest_negatives_match_brute_force():
     g = torch.Generator().manual_seed(0)
     query = F.normalize(torch.randn(8, 6, generator=g), dim=1)
     reference = F.normalize(torch.randn(8, 6, generator=g), dim=1)
-    ids = torch.tensor([0, 1, 2, 3, 3, 5, 6, 7])  # 3 and 4 share a location: not each other's negative
+    reference[4] = query[3]  # the closest reference to query 3 shares its location: not its negative
+    ids = torch.tensor([0, 1, 2, 3, 3, 5, 6, 7])
     desc, neg_ids = GMSQueue.hardest_negatives(query, reference.requires_grad_(), ids)
     expected = brute_hardest(query, reference.detach(), ids)
+    assert len(expected) == 8 and expected[3] != 4
     assert neg_ids.tolist() == ids[expected].tolist()
     torch.testing.assert_close(desc, reference.detach()[expected])
     assert not desc.requires_grad
 
 
-def test_hardest_negatives_skip_queries_without_negative():
+def test_hardest_negatives_without_negative_are_skipped_by_push():
     q = F.normalize(torch.randn(3, 4), dim=1)
     desc, ids = GMSQueue.hardest_negatives(q, q, torch.tensor([5, 5, 6]))
     assert ids.tolist() == [6, 6, 5]
-    desc, ids = GMSQueue.hardest_negatives(q[:1], q[:1], torch.tensor([5]))
-    assert desc.shape == (0, 4) and ids.shape == (0,)
+    desc, ids = GMSQueue.hardest_negatives(q, q, torch.tensor([5, 5, 5]))  # one row per query, none valid
+    assert desc.shape == (3, 4) and ids.tolist() == [-1, -1, -1] and not desc.any()
+    queue = GMSQueue(4, 4)
+    queue.push(*entries([1], dim=4))
+    queue.push(desc, ids)
+    assert queue.ids.tolist() == [1, -1, -1, -1] and int(queue.ptr) == 1
 
 
 def test_queue_negatives_feed_the_loss():
@@ -157,3 +163,26 @@ def test_bad_inputs():
         queue.push(torch.zeros(2, 3), torch.tensor([1, 2]))
     with pytest.raises(ValueError, match="N ids"):
         queue.push(torch.zeros(2, 4), torch.tensor([1, 2, 3]))
+
+
+def _push_on_rank(rank, world, init_file, result_file):
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        queue = GMSQueue(5, 3)
+        queue.push(*entries([[10, 11], [20]][rank]))  # ranks push different numbers of entries
+        torch.save({"ids": queue.ids, "ptr": queue.ptr, "descriptors": queue.descriptors}, f"{result_file}.{rank}")
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.slow
+def test_push_gathers_over_ranks(tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.spawn(_push_on_rank, args=(2, tmp_path / "init", tmp_path / "out"), nprocs=2)
+    states = [torch.load(f"{tmp_path / 'out'}.{r}", weights_only=True) for r in range(2)]
+    for state in states:  # every rank holds the same queue, in rank order
+        assert state["ids"].tolist() == [10, 11, 20, -1, -1] and int(state["ptr"]) == 3
+    torch.testing.assert_close(states[0]["descriptors"], states[1]["descriptors"])

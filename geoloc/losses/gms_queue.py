@@ -58,20 +58,20 @@ class GMSQueue(nn.Module):
     def hardest_negatives(query: torch.Tensor, reference: torch.Tensor,
                           ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """For each query (B x D), the closest reference (B x D) of another location: the diagonal and every
-        reference with the query's id are excluded. Returns (N x D detached descriptors, N ids), N <= B: a query
-        without any valid negative (e.g. B = 1) contributes nothing."""
+        reference with the query's id are excluded. Returns (B x D detached descriptors, B ids), row i for query
+        i; a query without any valid negative (e.g. B = 1) gets a zero row and id -1, which ``push`` skips."""
         ids = ids.to(query.device).long().reshape(-1)
         sim = query.detach().float() @ reference.detach().float().t()  # closest = largest a.b = smallest 2-2a.b
         invalid = (ids[:, None] == ids[None, :]) | torch.eye(len(ids), dtype=torch.bool, device=sim.device)
-        sim = sim.masked_fill(invalid, float("-inf"))
-        best = sim.argmax(dim=1)
+        best = sim.masked_fill(invalid, float("-inf")).argmax(dim=1)
         has_negative = ~invalid.all(dim=1)
-        best = best[has_negative]
-        return reference.detach()[best], ids[best]
+        desc = torch.where(has_negative[:, None], reference.detach()[best], torch.zeros_like(reference))
+        return desc, torch.where(has_negative, ids[best], torch.full_like(ids, -1))
 
     @torch.no_grad()
     def push(self, descriptors: torch.Tensor, ids: torch.Tensor) -> None:
-        """Enqueue N descriptors (N x dim) with their location ids (N,), oldest entries first out.
+        """Enqueue N descriptors (N x dim) with their location ids (N,), oldest entries first out; entries with
+        id -1 are skipped.
 
         Under torch.distributed the entries of all ranks are gathered first (rank order), so every rank writes
         the same entries. When more than ``size`` entries arrive at once, only the last ``size`` are kept.
@@ -83,8 +83,9 @@ class GMSQueue(nn.Module):
                              f"and {tuple(ids.shape)}")
         descriptors = descriptors.detach().to(self.descriptors)
         ids = ids.detach().to(self.ids)
-        # all_gather_variable: ranks may push different numbers of entries (a query without a negative is dropped).
-        descriptors, ids = all_gather_variable(descriptors), all_gather_variable(ids)
+        descriptors, ids = all_gather_variable(descriptors), all_gather_variable(ids)  # ranks may differ in N
+        keep = ids >= 0  # id -1: a query that had no negative to give
+        descriptors, ids = descriptors[keep], ids[keep]
         n = ids.shape[0]
         if n == 0:
             return

@@ -1,5 +1,7 @@
 """Evaluation: retrieval recall and the gallery index (segmentation and image scores live beside them)."""
 from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.image import image_scores
 from geoloc.eval.recall import recall_at_k
+from geoloc.eval.segmentation import segmentation_scores
 
-__all__ = ["GalleryIndex", "recall_at_k"]
+__all__ = ["GalleryIndex", "image_scores", "recall_at_k", "segmentation_scores"]

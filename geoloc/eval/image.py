@@ -53,17 +53,21 @@ def ssim_map_mean(pred: torch.Tensor, target: torch.Tensor, size: int = 11, sigm
     return s.mean(dim=(1, 2, 3))
 
 
-def image_scores(pred, target) -> dict[str, float]:
-    """L1, L2, PSNR, SSIM of images in [0, 1]; a batch (BxCxHxW) gives the mean of the per-image scores."""
+def image_scores_per_image(pred, target) -> dict[str, torch.Tensor]:
+    """L1, L2, PSNR, SSIM of each image of a batch (B float64 tensors); same input layouts as image_scores."""
     p, t = _to_bchw(pred), _to_bchw(target)
     if p.shape != t.shape:
         raise ValueError(f"pred and target differ in shape: {tuple(p.shape)} vs {tuple(t.shape)}")
     diff = p - t
     mse = diff.pow(2).mean(dim=(1, 2, 3))
-    psnr = 10 * torch.log10(1.0 / mse.clamp_min(1e-20))  # identical images: capped at 200 dB, not inf
     return {
-        "L1": float(diff.abs().mean()),
-        "L2": float(mse.mean()),
-        "PSNR": float(psnr.mean()),
-        "SSIM": float(ssim_map_mean(p, t).mean()),
+        "L1": diff.abs().mean(dim=(1, 2, 3)),
+        "L2": mse,
+        "PSNR": 10 * torch.log10(1.0 / mse.clamp_min(1e-20)),  # identical images: capped at 200 dB, not inf
+        "SSIM": ssim_map_mean(p, t),
     }
+
+
+def image_scores(pred, target) -> dict[str, float]:
+    """L1, L2, PSNR, SSIM of images in [0, 1]; a batch (BxCxHxW) gives the mean of the per-image scores."""
+    return {k: float(v.mean()) for k, v in image_scores_per_image(pred, target).items()}

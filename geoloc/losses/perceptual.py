@@ -12,11 +12,11 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 VGG16_IMAGENET_FILE = "vgg16-397923af.pth"  # torchvision's VGG16_Weights.IMAGENET1K_V1 file name
 LAYERS = {"relu1_2": 3, "relu2_2": 8, "relu3_3": 15, "relu4_3": 22}
+VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
 _MEAN, _STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
 
 
@@ -46,6 +46,19 @@ def resolve_weights(weights: str) -> Path | None:
     return path
 
 
+def vgg16_features(n_layers: int) -> nn.Sequential:
+    """The first `n_layers` modules of torchvision's vgg16().features, same indices (so state dicts load),
+    built without the 120M-parameter classifier."""
+    layers, cin = [], 3
+    for v in VGG16_CFG:
+        if v == "M":
+            layers.append(nn.MaxPool2d(2, 2))
+        else:
+            layers += [nn.Conv2d(cin, v, 3, padding=1), nn.ReLU()]
+            cin = v
+    return nn.Sequential(*layers[:n_layers])
+
+
 class VGGPerceptualLoss(nn.Module):
     """Mean over `layers` of L1(VGG16(pred), VGG16(target)); inputs B x 3 x H x W in [0, 1]."""
 
@@ -58,15 +71,12 @@ class VGGPerceptualLoss(nn.Module):
         path = resolve_weights(weights)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)  # random features are the same in every run
-            features = torchvision.models.vgg16().features[: self.taps[-1] + 1]
+            features = vgg16_features(self.taps[-1] + 1)
         if path is not None:
             state = _load_features_state(path)
             missing, _ = features.load_state_dict(state, strict=False)
             if missing:
                 raise ValueError(f"{path} is not a VGG16 state dict: missing {missing[:4]}")
-        for m in features:
-            if isinstance(m, nn.ReLU):
-                m.inplace = False
         self.features = features.requires_grad_(False).eval()
         self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)

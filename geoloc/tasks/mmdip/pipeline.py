@@ -1,0 +1,190 @@
+"""The MMDIP run: phase 1 (segmentation) -> phase 2 (joint cGAN) -> VPR evaluation, and checkpoint evaluation.
+
+run_dir/phase1/{best,last}.pt   SegmentationTask checkpoints (best = MIoU)
+run_dir/phase2/{best,last}.pt   JointTask checkpoints (best = SSIM), start from phase1/best.pt
+run_dir/vpr/                    vocabulary.npz, gallery_<split>_<seg>.npz (+ maps), metrics_<split>.json
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc.config import ConfigError, checked, to_yaml
+from geoloc.data.dynamic import (NUM_CLASSES, CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset,
+                                 load_class_fractions)
+from geoloc.engine import Trainer, TrainerConfig
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.engine import distributed as dist
+from geoloc.eval.image import image_scores_per_image
+from geoloc.tasks.mmdip.config import DATASETS, DynamicDataConfig, MMDIPConfig
+from geoloc.tasks.mmdip.joint import JointTask
+from geoloc.tasks.mmdip.retrieval import evaluate_retrieval
+from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
+
+TRANSFORM_KEYS = ("image_size",)  # must stay as trained
+
+
+def dataset_root(cfg: DynamicDataConfig) -> Path:
+    """The dataset folder; the synthetic `dynamic` layout is generated on first use when root is null."""
+    if cfg.root:
+        return Path(cfg.root).expanduser()
+    from geoloc.data.crossview import default_cache
+    from geoloc.data.synthetic import ensure_dataset
+
+    root = default_cache() / f"dynamic-{cfg.preset}-{cfg.train_size}-{cfg.val_size}-seed{cfg.seed}"
+    return Path(ensure_dataset("dynamic", root, preset=cfg.preset, train=cfg.train_size, val=cfg.val_size,
+                               seed=cfg.seed, workers=cfg.workers))
+
+
+def build_split(cfg: DynamicDataConfig, root: Path, split: str, train: bool):
+    if cfg.name == "dynamic":
+        return DynamicDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=cfg.seed,
+                              check=cfg.check_files)
+    if cfg.name == "carla4":
+        return CarlaFourPanelDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=cfg.seed)
+    return EmptyCitiesDataset(root, split, cfg.image_size)
+
+
+def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfig]:
+    task_cfg = checked(cfg.task, MMDIPConfig, "task")
+    if cfg.dataset.get("name") not in DATASETS:
+        raise ConfigError(f"task=mmdip reads dynamic-scene data: add dataset=dynamic (or dataset=carla4 "
+                          f"dataset.root=DIR); dataset={cfg.dataset.get('name')} is a cross-view dataset")
+    data_cfg = checked(cfg.dataset, DynamicDataConfig, "dataset")
+    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
+    if data_cfg.name == "emptycities":
+        raise ConfigError("dataset=emptycities has no labels: it is for evaluation only (evaluate.py ckpt=...)")
+    if task_cfg.num_classes != NUM_CLASSES:
+        raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
+    if cfg.get("ckpt"):
+        raise ConfigError("task=mmdip runs both phases from scratch; resuming with ckpt= is not supported")
+    return task_cfg, data_cfg, trainer_cfg
+
+
+def phase_trainer(trainer_cfg: TrainerConfig, epochs: int, run_dir: Path, yaml: str) -> Trainer:
+    """trainer.max_epochs caps each phase's own epoch count."""
+    return Trainer(dataclasses.replace(trainer_cfg, max_epochs=min(epochs, trainer_cfg.max_epochs)), run_dir, yaml)
+
+
+def run_phase1(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir: Path, yaml: str):
+    task = SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, fractions)
+    trainer = phase_trainer(trainer_cfg, task_cfg.segmentation.epochs, run_dir, yaml)
+    best = trainer.fit(task, train_set, val_set, batch_size=task_cfg.segmentation.batch_size,
+                       val_batch_size=data_cfg.val_batch_size)
+    return task, best
+
+
+def run_phase2(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir: Path, yaml: str,
+               phase1_ckpt: Path | None):
+    task = JointTask(task_cfg, fractions)
+    if phase1_ckpt is not None and task_cfg.translation.init_from_phase1:
+        state = ckpt_io.load(phase1_ckpt)["task"]
+        task.seg.load_state_dict({k[len("seg."):]: v for k, v in state.items() if k.startswith("seg.")})
+    trainer = phase_trainer(trainer_cfg, task_cfg.translation.epochs, run_dir, yaml)
+    best = trainer.fit(task, train_set, val_set, batch_size=task_cfg.translation.batch_size,
+                       val_batch_size=data_cfg.val_batch_size)
+    if (run_dir / "best.pt").is_file():
+        task.load_state_dict(ckpt_io.load(run_dir / "best.pt")["task"])
+    return task, best, trainer.device
+
+
+def train(cfg: DictConfig, run_dir: Path) -> dict:
+    """Phase 1 -> phase 2 -> VPR evaluation on dataset.split; prints and returns the metrics of each."""
+    task_cfg, data_cfg, trainer_cfg = parse(cfg)
+    run_dir = Path(run_dir)
+    yaml = to_yaml(cfg)
+    root = dataset_root(data_cfg)
+    fractions = load_class_fractions(root)
+    train_set = build_split(data_cfg, root, "train", train=True)
+    val_set = build_split(data_cfg, root, "val", train=False)
+
+    _, best1 = run_phase1(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir / "phase1", yaml)
+    print(f"phase 1 ({task_cfg.segmentation.model}) best: " + _fmt(best1))
+    task, best2, device = run_phase2(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions,
+                                     run_dir / "phase2", yaml, run_dir / "phase1" / "best.pt")
+    print(f"phase 2 ({task_cfg.translation.variant}) best: " + _fmt(best2))
+    result = {"phase1": best1, "phase2": best2}
+    if data_cfg.name == "dynamic" and dist.is_main():
+        out = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
+                                 run_dir / "vpr", data_cfg.val_batch_size, trainer_cfg.num_workers)
+        result["vpr"] = out["metrics"]
+        print_recall(out["metrics"], f"MMDIP retrieval, {data_cfg.split} split, L={task_cfg.vpr.levels}")
+        (run_dir / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def _fmt(metrics: dict) -> str:
+    return "  ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float) and "IoU_" not in k)
+
+
+def print_recall(metrics: dict, title: str) -> None:
+    print(f"\n{title} ({metrics['num_queries']} queries)")
+    rows = [("BoW+SPM", ""), ("BoW", "BoW/"), ("SPM", "SPM/"), ("dynamic image BoW", "dynamic-BoW/")]
+    keys = [k for k in metrics if k.startswith("R@")]
+    print("| method | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
+    for name, prefix in rows:
+        print(f"| {name} | " + " | ".join(f"{metrics[prefix + k]:.4f}" for k in keys) + " |")
+
+
+def _merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:
+    section = OmegaConf.to_container(stored, resolve=True)
+    if requested is not None:
+        req = OmegaConf.to_container(requested, resolve=True)
+        if req.get("name") and req["name"] != section.get("name"):
+            section = {k: v for k, v in section.items() if k in TRANSFORM_KEYS or k == "val_batch_size"}
+        section.update({k: v for k, v in req.items() if v is not None and k not in TRANSFORM_KEYS})
+    return OmegaConf.create(section)
+
+
+@torch.no_grad()
+def evaluate(cfg: DictConfig, ckpt_path, metrics_out=None) -> dict:
+    """Score a phase-2 (or phase-1) checkpoint. dataset=emptycities: L1, L2, PSNR, SSIM; dataset=dynamic:
+    recall keys + num_queries (artefacts reused from the run's vpr/ folder); a phase-1 checkpoint: PA, MPA,
+    MIoU, FWIoU. Writes the JSON to `metrics_out` when given."""
+    ckpt_path = Path(ckpt_path)
+    state = ckpt_io.load(ckpt_path)
+    stored = OmegaConf.create(state["config"])
+    task_cfg = checked(stored.task, MMDIPConfig, "task")
+    data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
+    device = dist.init_from_env(cfg.get("device", "auto") if "device" in cfg else "auto")
+    uniform = [1.0 / task_cfg.num_classes] * task_cfg.num_classes  # the stored class weights replace these
+    is_joint = any(k.startswith("generator.") for k in state["task"])
+    task = JointTask(task_cfg, uniform, training=False) if is_joint else SegmentationTask(task_cfg.segmentation,
+                                                                          task_cfg.num_classes, uniform)
+    task.load_state_dict(state["task"])
+    task.eval().to(device)
+    root = dataset_root(data_cfg)
+    dataset = build_split(data_cfg, root, data_cfg.split, train=False)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=data_cfg.val_batch_size)
+
+    if not is_joint:
+        conf = sum(batch_confusion(task.seg(b["dynamic"].to(device)).argmax(1), b["label"].to(device),
+                                   task.num_classes).sum(0) for b in loader)
+        metrics = confusion_metrics(conf[None])
+    elif data_cfg.name == "dynamic":
+        artefacts = ckpt_path.resolve().parent.parent / "vpr"
+        metrics = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
+                                     artefacts, data_cfg.val_batch_size)["metrics"]
+        print_recall(metrics, f"MMDIP retrieval, {data_cfg.split} split, ckpt {ckpt_path}")
+    else:
+        sums, n = {}, 0
+        for b in loader:
+            _, fake = task.translate(b["dynamic"].to(device), b["mask"].to(device))
+            scores = image_scores_per_image((fake.float().clamp(-1, 1) + 1) / 2, b["static"].to(device))
+            for k, v in scores.items():
+                sums[k] = sums.get(k, 0.0) + float(v.sum())
+            n += len(b["dynamic"])
+        metrics = {k: v / n for k, v in sums.items()}
+        metrics["num_images"] = n
+        print(f"{data_cfg.name} {data_cfg.split or ''}: " + _fmt(metrics))
+    if metrics_out:
+        out = Path(metrics_out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(metrics, indent=2) + "\n")
+    return metrics

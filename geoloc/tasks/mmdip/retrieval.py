@@ -1,0 +1,200 @@
+"""MMDIP place recognition: code queries and references, fuse (eq. 5), score with the project's recall.
+
+Query (a dynamic image): segmentation -> static map M (SPM) and, through the generator, the recovered static
+image (ORB BoW). Reference (a static landmark image): its static image (BoW) and its segmentation (SPM; predicted
+from the static image, or the ground-truth labels with vpr.gallery_seg=label). The vocabulary is learned on the
+training split's static images. Vocabulary and reference codes are saved artefacts in `artefact_dir` and reused.
+References are reordered so reference[i] is query i's place, the order recall_at_k expects.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from geoloc.data.dynamic import DynamicDataset
+from geoloc.eval.recall import recall_at_k, retrieval_ranks
+from geoloc.tasks.mmdip.config import VPRConfig
+from geoloc.tasks.mmdip.networks import generator_input
+from geoloc.vpr import Gallery, ORBExtractor, Vocabulary, fused_descriptors, spm_encode
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """B x 3 x H x W in [0, 1] -> B x H x W x 3 uint8."""
+    return (images.clamp(0, 1) * 255).round().byte().permute(0, 2, 3, 1).cpu().numpy()
+
+
+@dataclass
+class Codes:
+    bow: np.ndarray
+    seg: np.ndarray  # N x H x W uint8 maps, kept so SPM can be recomputed at other levels (Table IV)
+    places: np.ndarray
+    extra: dict = field(default_factory=dict)  # query only: images for figures, BoW of the raw dynamic image
+
+
+class Coder:
+    """ORB + vocabulary + SPM, configured once."""
+
+    def __init__(self, cfg: VPRConfig, num_classes: int):
+        self.cfg, self.num_classes = cfg, num_classes
+        self.orb = ORBExtractor(cfg.orb_features, cfg.orb_patch_size, cfg.orb_fast_threshold)
+        self.vocab: Vocabulary | None = None
+
+    def bow(self, images: np.ndarray) -> np.ndarray:
+        return np.stack([self.vocab.encode(self.orb(img)) for img in images])
+
+    def spm(self, segs: np.ndarray, levels: int) -> np.ndarray:
+        return np.stack([spm_encode(s, self.num_classes, levels) for s in segs])
+
+    def fit_vocabulary(self, images) -> Vocabulary:
+        self.vocab = Vocabulary.fit([self.orb(img) for img in images], self.cfg.vocab_size, self.cfg.vocab_iters)
+        return self.vocab
+
+
+def _loader(dataset, batch_size: int, num_workers: int) -> DataLoader:
+    return DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=num_workers)
+
+
+@torch.no_grad()
+def _run_queries(task, loader, device) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
+    """Dynamic images -> (recovered static uint8, M maps, places, input images, per-query seconds per stage)."""
+    recovered, segs, places, dynamic, static = [], [], [], [], []
+    seconds = {"segmentation": 0.0, "translation": 0.0}
+    for batch in loader:
+        dyn = batch["dynamic"].to(device)
+        t0 = time.perf_counter()
+        logits = task.seg(dyn)
+        _sync(device)
+        t1 = time.perf_counter()
+        fake = task.generator(generator_input(task.tcfg.variant, dyn, logits, batch["mask"].to(device)))
+        _sync(device)
+        seconds["segmentation"] += t1 - t0
+        seconds["translation"] += time.perf_counter() - t1
+        recovered.append(to_uint8((fake.float() + 1) / 2))
+        segs.append(logits.argmax(1).byte().cpu().numpy())
+        places.append(batch["place"].numpy())
+        dynamic.append(to_uint8(batch["dynamic"]))
+        static.append(to_uint8(batch["static"]))
+    n = sum(len(p) for p in places)
+    inputs = {"dynamic": np.concatenate(dynamic), "static": np.concatenate(static)}
+    return (np.concatenate(recovered), np.concatenate(segs), np.concatenate(places), inputs,
+            {k: v / n for k, v in seconds.items()})
+
+
+@torch.no_grad()
+def _run_references(task, loader, device, use_labels: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    images, segs, places = [], [], []
+    for batch in loader:
+        static = batch["static"]
+        seg = batch["label"] if use_labels else task.seg(static.to(device)).argmax(1)
+        images.append(to_uint8(static))
+        segs.append(seg.byte().cpu().numpy())
+        places.append(batch["place"].numpy())
+    return np.concatenate(images), np.concatenate(segs), np.concatenate(places)
+
+
+def _sync(device) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def match_order(query_places: np.ndarray, ref_places: np.ndarray) -> np.ndarray:
+    """Permutation of the references putting query i's place at row i, the other references after."""
+    where = {int(p): i for i, p in enumerate(ref_places)}
+    if len(where) != len(ref_places):
+        raise ValueError("the gallery holds two references of one place")
+    missing = sorted({int(p) for p in query_places} - where.keys())
+    if missing:
+        raise ValueError(f"queries of places {missing[:5]} have no reference in the gallery")
+    if len(set(query_places.tolist())) != len(query_places):
+        raise ValueError("several queries of one place: recall_at_k needs one query per reference")
+    head = [where[int(p)] for p in query_places]
+    rest = sorted(set(range(len(ref_places))) - set(head))
+    return np.array(head + rest, dtype=np.int64)
+
+
+def recall(q_bow, q_spm, r_bow, r_spm, alpha: float, ks) -> tuple[dict, torch.Tensor]:
+    """Recall of eq. 5's fused similarity; references already in query order. Returns (metrics, ranks)."""
+    q = torch.from_numpy(fused_descriptors(q_bow, q_spm, alpha, "query"))
+    r = torch.from_numpy(fused_descriptors(r_bow, r_spm, alpha, "reference"))
+    return recall_at_k(q, r, ks=ks), retrieval_ranks(q, r)
+
+
+def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, device, artefact_dir: Path,
+                       batch_size: int = 8, num_workers: int = 0, extra_levels=(), max_train_images: int = 0,
+                       log=print) -> dict:
+    """Fused retrieval on `split` of a `dynamic` layout; returns metrics, ranks and per-query timings.
+
+    Keys: R@K / R@1% / num_queries (BoW + SPM at cfg.levels), BoW/R@K (recovered image only), SPM/R@K,
+    dynamic-BoW/R@K (the raw dynamic query, no recovery), L{l}/R@K and L{l}/coding_ms for `extra_levels`,
+    ms/<stage> per query.
+    """
+    artefact_dir = Path(artefact_dir)
+    artefact_dir.mkdir(parents=True, exist_ok=True)
+    task.eval().to(device)
+    coder = Coder(cfg, task.num_classes)
+    vocab_path = artefact_dir / "vocabulary.npz"
+    if vocab_path.is_file():
+        coder.vocab = Vocabulary.load(vocab_path)
+    else:
+        train_set = DynamicDataset(root, "train", image_size=image_size, check="off")
+        idx = range(len(train_set)) if not max_train_images else range(min(max_train_images, len(train_set)))
+        imgs = [to_uint8(train_set[i]["static"][None])[0] for i in idx]
+        coder.fit_vocabulary(imgs).save(vocab_path)
+        log(f"vocabulary: {coder.vocab.size} words from {len(imgs)} training static images -> {vocab_path}")
+
+    gallery_path = artefact_dir / f"gallery_{split}_{cfg.gallery_seg}.npz"
+    refs = DynamicDataset(root, split, image_size=image_size, roles=("reference",), check="off")
+    if gallery_path.is_file():
+        gallery = Gallery.load(gallery_path)
+        ref_segs = np.load(artefact_dir / f"gallery_{split}_{cfg.gallery_seg}_seg.npy")
+    else:
+        ref_imgs, ref_segs, ref_places = _run_references(task, _loader(refs, batch_size, num_workers), device,
+                                                         cfg.gallery_seg == "label")
+        gallery = Gallery(coder.bow(ref_imgs), coder.spm(ref_segs, cfg.levels), ref_places, cfg.levels)
+        gallery.save(gallery_path)
+        np.save(artefact_dir / f"gallery_{split}_{cfg.gallery_seg}_seg.npy", ref_segs)
+        log(f"gallery: {len(ref_places)} references of split '{split}' -> {gallery_path}")
+    ref_spm = gallery.spm if gallery.levels == cfg.levels else coder.spm(ref_segs, cfg.levels)
+
+    queries = DynamicDataset(root, split, image_size=image_size, roles=("query",), check="off")
+    rec, q_segs, q_places, q_inputs, seconds = _run_queries(task, _loader(queries, batch_size, num_workers), device)
+    t0 = time.perf_counter()
+    q_bow = coder.bow(rec)
+    t1 = time.perf_counter()
+    q_spm = coder.spm(q_segs, cfg.levels)
+    t2 = time.perf_counter()
+    n = len(q_places)
+    order = match_order(q_places, gallery.places)
+    r_bow, r_spm, r_segs = gallery.bow[order], ref_spm[order], ref_segs[order]
+
+    ks = tuple(cfg.ks)
+    t3 = time.perf_counter()
+    metrics, ranks = {}, {}
+    fused, ranks["BoW+SPM"] = recall(q_bow, q_spm, r_bow, r_spm, cfg.alpha, ks)
+    seconds["retrieval"] = (time.perf_counter() - t3) / n
+    seconds["bow_coding"], seconds["spm_coding"] = (t1 - t0) / n, (t2 - t1) / n
+    metrics.update(fused)
+    metrics["num_queries"] = n
+    for name, alpha in (("BoW", 1.0), ("SPM", 0.0)):
+        m, ranks[name] = recall(q_bow, q_spm, r_bow, r_spm, alpha, ks)
+        metrics.update({f"{name}/{k}": v for k, v in m.items()})
+    m, ranks["dynamic-BoW"] = recall(coder.bow(q_inputs["dynamic"]), q_spm, r_bow, r_spm, 1.0, ks)
+    metrics.update({f"dynamic-BoW/{k}": v for k, v in m.items()})
+    for lvl in extra_levels:
+        t0 = time.perf_counter()
+        q_lvl = coder.spm(q_segs, lvl)
+        ms = (time.perf_counter() - t0) / n * 1e3 + seconds["bow_coding"] * 1e3
+        m, ranks[f"L{lvl}"] = recall(q_bow, q_lvl, r_bow, coder.spm(r_segs, lvl), cfg.alpha, ks)
+        metrics.update({f"L{lvl}/{k}": v for k, v in m.items()})
+        metrics[f"L{lvl}/coding_ms"] = ms
+    metrics.update({f"ms/{k}": v * 1e3 for k, v in seconds.items()})
+    (artefact_dir / f"metrics_{split}.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    return {"metrics": metrics, "ranks": ranks,
+            "examples": {**q_inputs, "recovered": rec, "seg": q_segs, "places": q_places}}

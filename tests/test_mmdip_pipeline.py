@@ -1,0 +1,96 @@
+"""Tiny CPU runs of the MMDIP task: phase 1 -> phase 2 -> VPR evaluation, then evaluate() on the checkpoints."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import compose_train
+from test_dynamic_readers import write_tiny_dynamic
+
+from geoloc.config import ConfigError
+from geoloc.tasks import mmdip
+from geoloc.tasks.mmdip.config import MMDIPConfig, TranslationConfig
+from geoloc.tasks.mmdip.networks import build_generator, generator_input
+
+TINY_MMDIP = [
+    "task=mmdip", "dataset=dynamic", "dataset.image_size=[64,64]", "dataset.val_batch_size=4",
+    "task.segmentation.epochs=1", "task.segmentation.batch_size=4",
+    "task.translation.epochs=1", "task.translation.batch_size=4", "task.translation.num_downs=4",
+    "task.translation.ngf=8", "task.translation.ndf=8", "task.translation.d_layers=2",
+    "task.translation.perceptual_layers=[relu1_2]", "task.vpr.vocab_size=16", "task.vpr.orb_patch_size=11",
+    "task.vpr.orb_fast_threshold=5", "trainer.num_workers=0", "trainer.progress=false", "trainer.device=cpu",
+]
+
+
+@pytest.mark.parametrize("variant,channels", [("ssggnet", 16), ("ssggnet_sm", 16), ("pix2pix", 3), ("mgan", 4)])
+def test_generator_input_channels_per_variant(variant, channels):
+    dynamic, mask = torch.rand(2, 3, 16, 16), (torch.rand(2, 1, 16, 16) > 0.5).float()
+    logits = torch.randn(2, 8, 16, 16)
+    x = generator_input(variant, dynamic, logits, mask)
+    assert x.shape == (2, channels, 16, 16)
+    g = build_generator(TranslationConfig(variant=variant, num_downs=2, ngf=4), 8)
+    assert g.downs[0][0].in_channels == channels
+    if variant == "ssggnet":  # gray copied K times, then the softmax map S
+        assert torch.allclose(x[:, 0], x[:, 7]) and torch.allclose(x[:, 8:], logits.softmax(1))
+    if variant == "ssggnet_sm":
+        assert torch.equal(x[:, 8:].argmax(1), logits.argmax(1)) and set(x[:, 8:].unique().tolist()) == {0.0, 1.0}
+
+
+def test_config_errors_are_clear(tmp_path):
+    with pytest.raises(ConfigError, match="variant"):
+        mmdip.train(compose_train([*TINY_MMDIP, "task.translation.variant=cyclegan", f"run_dir={tmp_path}"]),
+                    tmp_path)
+    with pytest.raises(ConfigError, match="vocab_sz"):
+        mmdip.train(compose_train([*TINY_MMDIP, "+task.vpr.vocab_sz=3", f"run_dir={tmp_path}"]), tmp_path)
+    with pytest.raises(ConfigError, match="dataset=dynamic"):
+        mmdip.train(compose_train(["task=mmdip", f"run_dir={tmp_path}"]), tmp_path)
+    assert MMDIPConfig().translation.lr_d == 4e-3
+
+
+@pytest.fixture
+def one_thread():
+    # the machine is shared: several intra-op threads spin against each other and make tiny convs 100x slower
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.slow
+def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
+    root = write_tiny_dynamic(tmp_path / "dyn", n_train=4, n_val=4)
+    run = tmp_path / "run"
+    cfg = compose_train([*TINY_MMDIP, f"dataset.root={root}", f"run_dir={run}"])
+    result = mmdip.train(cfg, run)
+    for phase in ("phase1", "phase2"):
+        assert (run / phase / "best.pt").is_file() and (run / phase / "last.pt").is_file()
+    assert 0 <= result["phase1"]["MIoU"] <= 1 and 0 <= result["phase2"]["SSIM"] <= 1
+    vpr = result["vpr"]
+    assert vpr["num_queries"] == 4
+    for key in ("R@1", "R@5", "R@10", "R@1%", "BoW/R@1", "SPM/R@1", "dynamic-BoW/R@1"):
+        assert 0 <= vpr[key] <= 1
+    assert vpr["R@5"] == 1.0  # 4 references: every true match is in the top 5
+    for artefact in ("vocabulary.npz", "gallery_val_predicted.npz"):
+        assert (run / "vpr" / artefact).is_file()
+    assert json.loads((run / "metrics.json").read_text())["vpr"]["R@1"] == vpr["R@1"]
+
+    # evaluate() reuses the saved vocabulary and gallery and gives the same recall
+    mtime = (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns
+    out = tmp_path / "metrics.json"
+    again = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "best.pt", out)
+    assert again["R@1"] == vpr["R@1"] and json.loads(out.read_text())["num_queries"] == 4
+    assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns == mtime
+
+    # Empty Cities 3-panel images: static-image recovery scores
+    ec = tmp_path / "ec"
+    ec.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        cv2.imwrite(str(ec / f"{i}.png"), rng.integers(0, 255, (60, 240, 3), np.uint8))
+    ec_cfg = compose_train([*TINY_MMDIP, "dataset.name=emptycities", f"dataset.root={ec}", "dataset.split=null"])
+    scores = mmdip.evaluate(ec_cfg, run / "phase2" / "best.pt", tmp_path / "ec.json")
+    assert set(scores) == {"L1", "L2", "PSNR", "SSIM", "num_images"} and scores["num_images"] == 2
+    seg = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase1" / "best.pt")
+    assert {"PA", "MPA", "MIoU", "FWIoU"} <= set(seg)

@@ -15,7 +15,7 @@ from geoloc.tasks.mmdip.config import MMDIPConfig, TranslationConfig
 from geoloc.tasks.mmdip.networks import build_generator, generator_input
 
 TINY_MMDIP = [
-    "task=mmdip", "dataset=dynamic", "dataset.image_size=[64,64]", "dataset.val_batch_size=4",
+    "task=mmdip", "dataset.image_size=[64,64]", "dataset.val_batch_size=4",
     "task.segmentation.epochs=1", "task.segmentation.batch_size=4",
     "task.translation.epochs=1", "task.translation.batch_size=4", "task.translation.num_downs=4",
     "task.translation.ngf=8", "task.translation.ndf=8", "task.translation.d_layers=2",
@@ -45,7 +45,8 @@ def test_config_errors_are_clear(tmp_path):
     with pytest.raises(ConfigError, match="vocab_sz"):
         mmdip.train(compose_train([*TINY_MMDIP, "+task.vpr.vocab_sz=3", f"run_dir={tmp_path}"]), tmp_path)
     with pytest.raises(ConfigError, match="dataset=dynamic"):
-        mmdip.train(compose_train(["task=mmdip", f"run_dir={tmp_path}"]), tmp_path)
+        mmdip.train(compose_train(["task=mmdip", "dataset=synthetic", f"run_dir={tmp_path}"]), tmp_path)
+    assert compose_train(["task=mmdip", f"run_dir={tmp_path}"]).dataset.name == "dynamic"  # task=mmdip switches
     assert MMDIPConfig().translation.lr_d == 4e-3
 
 

@@ -111,9 +111,10 @@ class DynamicDataConfig:
     augment: bool = True  # horizontal flips in training
     check_files: str = "exists"  # decode | exists | off
     # synthetic only: what to generate on first use
-    preset: str = "small"
-    train_size: int = 200
+    preset: str = "dynamic_small"
+    train_size: int = 200  # places (two views each)
     val_size: int = 100
+    view_size: int | None = 128  # rendered side in pixels; null = the preset's
     seed: int = 0
     workers: int = 2
 

@@ -37,9 +37,10 @@ def dataset_root(cfg: DynamicDataConfig) -> Path:
     from geoloc.data.crossview import default_cache
     from geoloc.data.synthetic import ensure_dataset
 
-    root = default_cache() / f"dynamic-{cfg.preset}-{cfg.train_size}-{cfg.val_size}-seed{cfg.seed}"
+    root = default_cache() / (f"dynamic-{cfg.preset}-{cfg.view_size or 'preset'}px-{cfg.train_size}-{cfg.val_size}"
+                              f"-seed{cfg.seed}")
     return Path(ensure_dataset("dynamic", root, preset=cfg.preset, train=cfg.train_size, val=cfg.val_size,
-                               seed=cfg.seed, workers=cfg.workers))
+                               seed=cfg.seed, workers=cfg.workers, view_size=cfg.view_size))
 
 
 def build_split(cfg: DynamicDataConfig, root: Path, split: str, train: bool):

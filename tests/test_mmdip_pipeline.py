@@ -68,14 +68,14 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
     for phase in ("phase1", "phase2"):
         assert (run / phase / "best.pt").is_file() and (run / phase / "last.pt").is_file()
     assert 0 <= result["phase1"]["MIoU"] <= 1 and 0 <= result["phase2"]["SSIM"] <= 1
-    vpr = result["vpr"]
+    vpr = result
     assert vpr["num_queries"] == 4
     for key in ("R@1", "R@5", "R@10", "R@1%", "BoW/R@1", "SPM/R@1", "dynamic-BoW/R@1"):
         assert 0 <= vpr[key] <= 1
     assert vpr["R@5"] == 1.0  # 4 references: every true match is in the top 5
     for artefact in ("vocabulary.npz", "gallery_val_predicted.npz"):
         assert (run / "vpr" / artefact).is_file()
-    assert json.loads((run / "metrics.json").read_text())["vpr"]["R@1"] == vpr["R@1"]
+    assert json.loads((run / "metrics.json").read_text())["R@1"] == vpr["R@1"]
 
     # evaluate() reuses the saved vocabulary and gallery and gives the same recall
     mtime = (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns

@@ -96,7 +96,8 @@ def run_phase2(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, r
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    """Phase 1 -> phase 2 -> VPR evaluation on dataset.split; prints and returns the metrics of each."""
+    """Phase 1 -> phase 2 -> VPR evaluation on dataset.split; prints them and returns the retrieval metrics
+    (R@K, num_queries, ...) with the phases' best validation metrics under "phase1" and "phase2"."""
     task_cfg, data_cfg, trainer_cfg = parse(cfg)
     run_dir = Path(run_dir)
     yaml = to_yaml(cfg)
@@ -114,7 +115,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     if data_cfg.name == "dynamic" and dist.is_main():
         out = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
                                  run_dir / "vpr", data_cfg.val_batch_size, trainer_cfg.num_workers)
-        result["vpr"] = out["metrics"]
+        result = {**out["metrics"], **result}  # recall keys at the top, as the cross-view runner returns them
         print_recall(out["metrics"], f"MMDIP retrieval, {data_cfg.split} split, L={task_cfg.vpr.levels}")
         (run_dir / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
@@ -153,7 +154,7 @@ def evaluate(cfg: DictConfig, ckpt_path, metrics_out=None) -> dict:
     stored = OmegaConf.create(state["config"])
     task_cfg = checked(stored.task, MMDIPConfig, "task")
     data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
-    device = dist.init_from_env(cfg.get("device", "auto") if "device" in cfg else "auto")
+    device = dist.init_from_env(cfg.get("device", "auto"))
     uniform = [1.0 / task_cfg.num_classes] * task_cfg.num_classes  # the stored class weights replace these
     is_joint = any(k.startswith("generator.") for k in state["task"])
     task = JointTask(task_cfg, uniform, training=False) if is_joint else SegmentationTask(task_cfg.segmentation,

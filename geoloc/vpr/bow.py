@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import sparse
 
 DESC_BYTES = 32
 
@@ -79,8 +80,9 @@ class Vocabulary:
         for _ in range(iters):
             assign = _nearest(bits, words)
             sizes = np.bincount(assign, minlength=k)
-            sums = np.zeros_like(words)
-            np.add.at(sums, assign, bits)
+            members = sparse.csr_matrix((np.ones(len(bits), np.float32), (assign, np.arange(len(bits)))),
+                                        shape=(k, len(bits)))
+            sums = members @ bits  # per-word count of set bits
             new = (2 * sums > sizes[:, None]).astype(np.float32)  # per-bit majority
             empty = sizes == 0
             new[empty] = bits[rng.choice(len(bits), int(empty.sum()), replace=False)]

@@ -76,3 +76,12 @@ def test_hub_cache_is_used_when_present(tmp_path, monkeypatch):
 def test_pretrained_needs_full_width():
     with pytest.raises(ValueError, match="width=1.0"):
         VGG16Trunk(width=0.5, pretrained=True)
+
+
+def test_batchnorm_trunk_taps_the_same_layers():
+    plain, bn = VGG16Trunk(width=0.125), VGG16Trunk(width=0.125, batchnorm=True)
+    assert plain.channels == bn.channels == [32, 64, 64]
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in bn.features)
+    x = torch.randn(2, 3, 64, 64)
+    assert [t.shape for t in plain(x)] == [t.shape for t in bn(x)] == [
+        (2, 32, 16, 16), (2, 64, 8, 8), (2, 64, 4, 4)]

@@ -17,6 +17,7 @@ class CrossViewModelConfig:
     width: float = 1.0  # VGG16 channel multiplier; 1.0 is the paper's network
     pretrained: bool = True  # ImageNet weights for both trunks (offline: hub cache or weights_path)
     weights_path: str | None = None
+    batchnorm: bool = False  # VGG16-BN trunk: trains from scratch (the CPU default); the paper uses plain VGG16
     msae: bool = True  # false = the paper's "w/o MSAE" ablation (plain FC head)
     dim: int = 4096  # descriptor dimension
     scale_channels: int = 64
@@ -33,7 +34,7 @@ class CrossViewModelConfig:
 class Branch(nn.Module):
     def __init__(self, cfg: CrossViewModelConfig):
         super().__init__()
-        self.trunk = VGG16Trunk(cfg.width, cfg.pretrained, cfg.weights_path)
+        self.trunk = VGG16Trunk(cfg.width, cfg.pretrained, cfg.weights_path, cfg.batchnorm)
         head = MSAEHead if cfg.msae else PlainHead
         self.head = head(self.trunk.channels, cfg.dim, scale_channels=cfg.scale_channels,
                          proj_channels=cfg.proj_channels, pool=cfg.pool)

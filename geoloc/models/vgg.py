@@ -6,18 +6,19 @@ from pathlib import Path
 
 import torch
 from torch import nn
-from torchvision.models import vgg16
+from torchvision.models import vgg16, vgg16_bn
 
-# The file torchvision's VGG16_Weights.IMAGENET1K_V1 downloads into the hub cache.
+# The files torchvision's VGG16_Weights.IMAGENET1K_V1 / VGG16_BN_Weights.IMAGENET1K_V1 download into the hub cache.
 IMAGENET_FILE = "vgg16-397923af.pth"
-_TAPS = {"conv3_3": 15, "conv4_3": 22, "conv5_3": 29}  # index of the ReLU after each conv in vgg16().features
+IMAGENET_BN_FILE = "vgg16_bn-6c64b313.pth"
+_TAP_CONVS = (7, 10, 13)  # conv3_3, conv4_3, conv5_3 are the 7th, 10th and 13th convolutions
 
 
 class MissingWeightsError(FileNotFoundError):
     pass
 
 
-def imagenet_weights_path(weights_path: str | None = None) -> Path:
+def imagenet_weights_path(weights_path: str | None = None, filename: str = IMAGENET_FILE) -> Path:
     """Where VGG16 ImageNet weights are read from: an explicit file, else torchvision's hub cache.
 
     Nothing is downloaded: these machines are often offline, and a silent download would change results.
@@ -26,20 +27,21 @@ def imagenet_weights_path(weights_path: str | None = None) -> Path:
         path = Path(weights_path).expanduser()
         if not path.is_file():
             raise MissingWeightsError(f"model.weights_path={weights_path!r} does not exist. Point it at a VGG16 "
-                                      f"ImageNet state dict such as torchvision's {IMAGENET_FILE}.")
+                                      f"ImageNet state dict such as torchvision's {filename}.")
         return path
-    path = Path(torch.hub.get_dir()) / "checkpoints" / IMAGENET_FILE
+    path = Path(torch.hub.get_dir()) / "checkpoints" / filename
     if not path.is_file():
         raise MissingWeightsError(
-            f"ImageNet VGG16 weights not found offline at {path}. Download {IMAGENET_FILE} (torchvision "
-            f"VGG16_Weights.IMAGENET1K_V1) on a connected machine and copy it there, or set "
-            f"model.weights_path=/path/to/{IMAGENET_FILE}; or train from scratch with model.pretrained=false.")
+            f"ImageNet VGG16 weights not found offline at {path}. Download {filename} (torchvision's "
+            f"ImageNet VGG16 weights) on a connected machine and copy it there, or set "
+            f"model.weights_path=/path/to/{filename}; or train from scratch with model.pretrained=false.")
     return path
 
 
-def load_imagenet_features(features: nn.Sequential, weights_path: str | None = None) -> None:
+def load_imagenet_features(features: nn.Sequential, weights_path: str | None = None,
+                           filename: str = IMAGENET_FILE) -> None:
     """Copy the conv weights of a torchvision VGG16 state dict into `features` (the classifier is unused)."""
-    path = imagenet_weights_path(weights_path)
+    path = imagenet_weights_path(weights_path, filename)
     state = torch.load(path, map_location="cpu", weights_only=True)
     conv = {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
     if not conv:
@@ -54,26 +56,36 @@ class VGG16Trunk(nn.Module):
     """VGG16 conv layers up to conv5_3 (no pool5), returning the three tapped maps.
 
     `width` scales every layer's channels (1.0 is the real VGG16; smaller widths train on a CPU).
+    `batchnorm` uses VGG16-BN, which trains from scratch far more readily than plain VGG16.
     Input B×3×H×W; outputs conv3_3 (B×256w×H/4×W/4), conv4_3 (B×512w×H/8×W/8), conv5_3 (B×512w×H/16×W/16).
     """
 
-    def __init__(self, width: float = 1.0, pretrained: bool = False, weights_path: str | None = None):
+    def __init__(self, width: float = 1.0, pretrained: bool = False, weights_path: str | None = None,
+                 batchnorm: bool = False):
         super().__init__()
-        features = vgg16(weights=None).features[: _TAPS["conv5_3"] + 1]
+        full = (vgg16_bn if batchnorm else vgg16)(weights=None).features
+        taps, convs = [], 0
+        for i, layer in enumerate(full):
+            convs += isinstance(layer, nn.Conv2d)
+            if isinstance(layer, nn.ReLU) and convs in _TAP_CONVS and convs not in [c for c, _ in taps]:
+                taps.append((convs, i))
+        features = full[: taps[-1][1] + 1]  # up to conv5_3's ReLU: no pool5
         if width != 1.0:
             features = _scaled(features, width)
         if pretrained:
             if width != 1.0:
                 raise ValueError("model.pretrained=true needs model.width=1.0 (ImageNet weights are full width).")
-            load_imagenet_features(features, weights_path)
+            load_imagenet_features(features, weights_path, IMAGENET_BN_FILE if batchnorm else IMAGENET_FILE)
         self.features = features
-        self.channels = [features[_TAPS[name] - 1].out_channels for name in ("conv3_3", "conv4_3", "conv5_3")]
+        self.taps = [i for _, i in taps]
+        conv_layers = [m for m in features if isinstance(m, nn.Conv2d)]
+        self.channels = [conv_layers[c - 1].out_channels for c in _TAP_CONVS]
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         taps = []
         for i, layer in enumerate(self.features):
             x = layer(x)
-            if i in (_TAPS["conv3_3"], _TAPS["conv4_3"], _TAPS["conv5_3"]):
+            if i in self.taps:
                 taps.append(x)
         return taps
 
@@ -85,6 +97,8 @@ def _scaled(features: nn.Sequential, width: float) -> nn.Sequential:
             out_ch = max(4, round(layer.out_channels * width))
             layers.append(nn.Conv2d(in_ch, out_ch, kernel_size=3, padding=1))
             in_ch = out_ch
+        elif isinstance(layer, nn.BatchNorm2d):
+            layers.append(nn.BatchNorm2d(in_ch))
         else:
             layers.append(layer)
     return nn.Sequential(*layers)

@@ -1,13 +1,17 @@
 """Everything distributed lives here: start-up from the environment, rank queries and gathers.
 
-torchrun sets RANK / WORLD_SIZE / LOCAL_RANK / MASTER_ADDR / MASTER_PORT; under SLURM without torchrun we read
-SLURM_PROCID / SLURM_NTASKS / SLURM_LOCALID instead (the address and port must then be exported by the job).
+torchrun sets RANK / WORLD_SIZE / LOCAL_RANK / MASTER_ADDR / MASTER_PORT; under SLURM without torchrun (srun, or
+the submitit launcher with one task per GPU) we read SLURM_PROCID / SLURM_NTASKS / SLURM_LOCALID instead and, when
+the job did not export them, derive MASTER_ADDR (the job's first node) and MASTER_PORT (from the job id).
 Rank 0 owns all I/O: logs, checkpoints, pictures.
 """
 
 from __future__ import annotations
 
 import os
+import re
+import subprocess
+import tempfile
 
 import torch
 import torch.distributed as dist
@@ -31,6 +35,7 @@ def init_from_env(device: str = "auto") -> torch.device:
     world_size = _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1)
     local_rank = _env_int("LOCAL_RANK", "SLURM_LOCALID", default=0)
     if world_size > 1 and not dist.is_initialized():
+        slurm_master_env()
         os.environ.setdefault("RANK", str(_env_int("RANK", "SLURM_PROCID", default=0)))
         os.environ.setdefault("WORLD_SIZE", str(world_size))
         if use_cuda:
@@ -39,6 +44,51 @@ def init_from_env(device: str = "auto") -> torch.device:
     if use_cuda:
         return torch.device("cuda", local_rank if world_size > 1 else torch.cuda.current_device())
     return torch.device("cpu")
+
+
+def first_host(nodelist: str) -> str:
+    """The first host of a SLURM node list: "gpu[07-09,12],cpu1" -> "gpu07" (scontrol when available)."""
+    try:
+        out = subprocess.run(["scontrol", "show", "hostnames", nodelist], capture_output=True, text=True,
+                             timeout=10, check=True).stdout.split()
+        if out:
+            return out[0]
+    except (OSError, subprocess.SubprocessError):
+        pass
+    m = re.match(r"([^\[,]+)(?:\[([^\],-]+))?", nodelist)
+    if not m:
+        raise RuntimeError(f"cannot read the SLURM node list {nodelist!r}; export MASTER_ADDR in the job")
+    return m.group(1) + (m.group(2) or "")
+
+
+def slurm_master_env() -> None:
+    """Under SLURM without torchrun, export MASTER_ADDR / MASTER_PORT unless the job already did.
+
+    Every task of a job computes the same values: the first node of the job, and a port from the job id (so two
+    jobs sharing a node do not collide).
+    """
+    if "SLURM_PROCID" not in os.environ or "RANK" in os.environ:
+        return  # not SLURM, or torchrun (which sets the rendezvous itself)
+    if "MASTER_ADDR" not in os.environ:
+        nodes = os.environ.get("SLURM_JOB_NODELIST") or os.environ.get("SLURM_NODELIST") or ""
+        single_node = int(os.environ.get("SLURM_JOB_NUM_NODES", os.environ.get("SLURM_NNODES", "1"))) == 1
+        os.environ["MASTER_ADDR"] = "127.0.0.1" if single_node or not nodes else first_host(nodes)
+    os.environ.setdefault("MASTER_PORT", str(20000 + int(os.environ.get("SLURM_JOB_ID", "0")) % 20000))
+
+
+def hydra_overrides_for_rank() -> list[str]:
+    """Hydra overrides for ranks > 0 of a torchrun / srun launch of train.py.
+
+    Each rank runs Hydra itself, and `${now:...}` in the run dir can differ by a second between ranks, which
+    would make a second run dir. Ranks > 0 get a throwaway Hydra dir without logs or .hydra/ (they write
+    nothing: rank 0 owns the run dir), so there is one run dir per launch.
+    """
+    rank_ = _env_int("RANK", "SLURM_PROCID", default=0)
+    if rank_ == 0 or _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1) == 1:
+        return []
+    scratch = os.path.join(tempfile.gettempdir(), f"geoloc-hydra-rank{rank_}")
+    return [f"hydra.run.dir={scratch}", "hydra.output_subdir=null", "hydra/job_logging=disabled",
+            "hydra/hydra_logging=disabled"]
 
 
 def is_dist() -> bool:

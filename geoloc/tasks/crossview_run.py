@@ -14,7 +14,9 @@ from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.models.crossview import CrossViewModelConfig
+from geoloc.tasks import crossview_gallery
 from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
+from geoloc.tasks.crossview_gallery import GalleryConfig
 
 # transform settings that must match what the network was trained on; evaluate always takes them from the ckpt
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
@@ -60,8 +62,13 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     trainer = Trainer(TrainerConfig(device=str(device.type), num_workers=cfg.get("num_workers", 0),
                                     progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
     task.to(trainer.device)
-    loader = trainer.loader(dataset, data_cfg.val_batch_size or data_cfg.batch_size, train=False)
-    metrics = trainer.validate(task, loader)
+    batch_size = data_cfg.val_batch_size or data_cfg.batch_size
+    gallery_cfg = checked(cfg.get("gallery") or {}, GalleryConfig, "gallery")
+    if gallery_cfg.save or gallery_cfg.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
+        meta = {"ckpt": str(cfg.ckpt), "dataset": f"{data_cfg.name} {data_cfg.split} {data_cfg.root}"}
+        metrics = crossview_gallery.evaluate(task, trainer, dataset, batch_size, gallery_cfg, meta)
+    else:
+        metrics = trainer.validate(task, trainer.loader(dataset, batch_size, train=False))
     metrics["num_queries"] = len(dataset)
     if dist.is_main():
         print_table(metrics, f"{data_cfg.name} {data_cfg.split} ({len(dataset)} queries), ckpt {cfg.ckpt}")

@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from conftest import TINY, compose_evaluate, compose_train
+from conftest import REALDATA, TINY, compose_evaluate, compose_train
 
 from geoloc import run
 from geoloc.engine import NonFiniteLossError
@@ -107,3 +107,24 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
         ckpt_io.save_atomic({"x": torch.zeros(3)}, path)
     assert torch.equal(ckpt_io.load(path)["x"], torch.ones(3))  # the old file is intact
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]  # no temp file left behind
+
+
+def test_figures_are_written_after_training(tiny_cvusa, tmp_path):
+    run_dir = tmp_path / "run"
+    run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=1", "figures=true"))
+    for name in ("attention.png", "top5.png", "recall_curve.png"):
+        assert (run_dir / name).stat().st_size > 1000, name
+    assert any((run_dir / "tb").rglob("projector_config.pbtxt"))  # descriptors for the embedding projector
+
+
+@pytest.mark.skipif(not (REALDATA / "cvusa_mini").is_dir(), reason="../shared/realdata not present")
+def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
+    run_dir = tmp_path / "run"
+    run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=1"))
+    out = tmp_path / "real.json"
+    metrics = run.evaluate(compose_evaluate([
+        f"ckpt={run_dir / 'best.pt'}", "dataset=cvusa", f"dataset.root={REALDATA / 'cvusa_mini'}",
+        "dataset.split=val", f"metrics_out={out}", "progress=false", f"run_dir={tmp_path / 'e'}"]))
+    rows = (REALDATA / "cvusa_mini/splits/val-19zl.csv").read_text().split()
+    assert json.loads(out.read_text())["num_queries"] == metrics["num_queries"] == len(rows)
+    assert 0.0 <= metrics["R@1"] <= metrics["R@5"] == 1.0  # fewer than 5 references: always in the top 5

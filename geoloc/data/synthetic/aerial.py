@@ -24,7 +24,7 @@ def render_aerial(world: World, light: Lighting, tile_m: float, size: int, seaso
     cls = world.cls[sl, sl]
     albedo = world.top[sl, sl].astype(np.float32) * (1.0 / 255.0)
     albedo = apply_season(albedo, cls, season)
-    rgb = albedo * light.top_shade[sl, sl][..., None]
+    rgb = albedo * light.top_shade_block(sl, sl)[..., None]
     t = cls.shape[0]
     interp = cv2.INTER_AREA if size < t else cv2.INTER_LINEAR
     rgb = cv2.resize(rgb, (size, size), interpolation=interp)

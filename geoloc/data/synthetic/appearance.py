@@ -13,6 +13,7 @@ own (None = derived from strength):
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -102,8 +103,24 @@ def apply_season(albedo: np.ndarray, cls: np.ndarray, season: float) -> np.ndarr
 
 
 def finish(rgb: np.ndarray, cond: Conditions, rng: np.random.Generator) -> np.ndarray:
-    """Float RGB in [0, 1] -> uint8 after white balance/exposure, a display gamma and sensor noise."""
-    out = np.clip(rgb * np.asarray(cond.gains, np.float32), 0, 1) ** (1 / 1.15) * 255.0
+    """Float RGB in [0, 1] -> uint8 after white balance/exposure and (luminance) sensor noise."""
+    out = rgb * (np.asarray(cond.gains, np.float32) * np.float32(255.0))
     if cond.noise_std > 0:
-        out += rng.standard_normal(out.shape[:2], np.float32)[..., None] * cond.noise_std
+        out += noise_patch(rng, out.shape[:2])[..., None] * np.float32(cond.noise_std)
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=1)
+def _noise_field() -> np.ndarray:
+    return np.random.default_rng(20231121).standard_normal((2048, 2048), np.float32)
+
+
+def noise_patch(rng: np.random.Generator, shape) -> np.ndarray:
+    """Unit Gaussian noise of the given shape: a window of one fixed field at a random offset (a fresh draw per
+    pixel costs more than the rest of the sensor model)."""
+    field = _noise_field()
+    h, w = shape
+    if h > field.shape[0] or w > field.shape[1]:
+        return rng.standard_normal((h, w), np.float32)
+    y, x = rng.integers(field.shape[0] - h + 1), rng.integers(field.shape[1] - w + 1)
+    return field[y : y + h, x : x + w]

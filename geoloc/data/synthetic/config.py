@@ -22,8 +22,8 @@ class SynthConfig:
     sphere_width: int = 1664
     view_size: int = 512  # square pinhole view (dynamic)
     fov_deg: float = 90.0
-    cell_m: float = 0.25  # world grid cell
-    tile_m: float = 144.0  # ground covered by the aerial tile (CVUSA zoom 19 is about 0.2 m/px over 750 px)
+    cell_m: float = 0.3  # world grid cell
+    tile_m: float = 144.0  # ground covered by the aerial tile (CVUSA's 750 px zoom-19 tiles: about 0.2 m/px)
     world_margin: float = 1.5  # world side = tile_m * world_margin, so the street views see past the tile
     camera_height: float = 2.2
     style: str = "mix"  # mix | urban | suburban | rural
@@ -91,6 +91,7 @@ PRESETS = {
     "small": dict(aerial_size=256, pano_height=112, pano_width=616, sphere_height=256, sphere_width=512,
                   view_size=128, cell_m=0.5, train=1200, val=300),
     "dynamic_small": dict(view_size=160, cell_m=0.5, train=300, val=100),
+    "dynamic_tiny": dict(view_size=48, cell_m=1.0, tile_m=96.0, train=3, val=2),
     # the real datasets' sizes and counts
     "cvusa": dict(train=35532, val=8884),
     "cvact": dict(aerial_size=1200, cell_m=0.2, train=35532, val=8884),

@@ -69,8 +69,8 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
             _run(a)
             bar.update()
     else:
-        ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-        with ctx.Pool(workers, initializer=_init_worker) as pool:
+        # spawn, not fork: a forked child can deadlock in OpenCV's thread pool if the parent used cv2 already
+        with mp.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
             for _ in pool.imap_unordered(_run, args, chunksize=2):
                 bar.update()
     bar.close()

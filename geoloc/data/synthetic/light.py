@@ -1,4 +1,8 @@
-"""Sun light: surface normals from the height field, cast shadows by height-field marching, Lambert shading."""
+"""Sun light: surface normals from the height field, cast shadows by height-field marching, Lambert shading.
+
+Shading is evaluated lazily, only at the cells a view actually looks at (a panorama sees a few hundred thousand
+of the world's cells, an aerial tile only its own square), so a world with another sun costs little.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -13,8 +17,8 @@ from .world import World
 class Sun:
     azimuth: float  # compass bearing of the sun, degrees clockwise from north
     elevation: float  # degrees above the horizon
-    ambient: float = 0.45
-    direct: float = 0.75
+    ambient: float = 0.5
+    direct: float = 0.7
 
     def vector(self) -> np.ndarray:
         """Unit vector towards the sun, (east, north, up)."""
@@ -22,63 +26,92 @@ class Sun:
         return np.array([np.sin(a) * np.cos(e), np.cos(a) * np.cos(e), np.sin(e)], np.float32)
 
 
-@dataclass
 class Lighting:
-    """Per-cell shading terms of one world under one sun (N x N float32 each)."""
+    """One world under one sun. All lookups take flat cell indices (row * N + col)."""
 
-    top_shade: np.ndarray  # ambient + direct * lit * max(0, n . sun) for the top surface
-    wall_nx: np.ndarray  # horizontal outward wall normal (east, north); zero away from height steps
-    wall_ny: np.ndarray
-    sun: Sun
+    def __init__(self, world: World, sun: Sun, shadow_cell: float = 1.0):
+        self.world, self.sun = world, sun
+        self.f = max(1, int(round(shadow_cell / world.cell)))
+        self.shadow_h = shadow_heights(world, sun, self.f)
+
+    def _gradient(self, idx: np.ndarray):
+        """Central differences of the height field at the cells: (d/deast, d/dnorth)."""
+        n, h = self.world.n, self.world.static.height.ravel()
+        r, c = np.divmod(idx, n)
+        left, right = r * n + np.maximum(c - 1, 0), r * n + np.minimum(c + 1, n - 1)
+        up, down = np.maximum(r - 1, 0) * n + c, np.minimum(r + 1, n - 1) * n + c
+        k = np.float32(0.5 / self.world.cell)
+        return (h[right] - h[left]) * k, (h[up] - h[down]) * k
+
+    def lit(self, idx: np.ndarray) -> np.ndarray:
+        """1 where the cell's surface sees the sun, 0 in cast shadow, soft over ~0.35 m of height."""
+        n, f = self.world.n, self.f
+        m = self.shadow_h.shape[0]
+        r, c = np.divmod(idx, n)
+        y = np.clip((r + 0.5) / f - 0.5, 0, m - 1)
+        x = np.clip((c + 0.5) / f - 0.5, 0, m - 1)
+        y0, x0 = np.minimum(y.astype(np.int64), m - 2), np.minimum(x.astype(np.int64), m - 2)
+        fy, fx = (y - y0).astype(np.float32), (x - x0).astype(np.float32)
+        s = self.shadow_h.ravel()
+        i = y0 * m + x0
+        sh = (s[i] * (1 - fx) + s[i + 1] * fx) * (1 - fy) + (s[i + m] * (1 - fx) + s[i + m + 1] * fx) * fy
+        return np.clip((self.world.height.ravel()[idx] - sh) / 0.35 + 0.5, 0.0, 1.0)
+
+    def top_shade(self, idx: np.ndarray) -> np.ndarray:
+        """ambient + direct * lit * max(0, n . sun) for the upward surface; wall-edge cells count as flat."""
+        gx, gy = self._gradient(idx)
+        steep = (gx * gx + gy * gy) > 4.0
+        nx, ny = np.where(steep, 0, -gx), np.where(steep, 0, -gy)
+        s = self.sun.vector()
+        cos = (nx * s[0] + ny * s[1] + s[2]) / np.sqrt(nx * nx + ny * ny + 1.0)
+        return (self.sun.ambient + self.sun.direct * self.lit(idx) * np.maximum(cos, 0)).astype(np.float32)
+
+    def top_shade_block(self, rows: slice, cols: slice) -> np.ndarray:
+        """top_shade over a rectangle of cells, by array slicing (the aerial tile)."""
+        w = self.world
+        h = np.pad(w.static.height, 1, mode="edge")[rows.start : rows.stop + 2, cols.start : cols.stop + 2]
+        k = np.float32(0.5 / w.cell)
+        gx = (h[1:-1, 2:] - h[1:-1, :-2]) * k
+        gy = (h[:-2, 1:-1] - h[2:, 1:-1]) * k
+        steep = (gx * gx + gy * gy) > 4.0
+        nx, ny = np.where(steep, 0, -gx), np.where(steep, 0, -gy)
+        s = self.sun.vector()
+        cos = (nx * s[0] + ny * s[1] + s[2]) / np.sqrt(nx * nx + ny * ny + 1.0)
+        m = self.shadow_h.shape[0]
+        full = cv2.resize(self.shadow_h, (m * self.f, m * self.f), interpolation=cv2.INTER_LINEAR)
+        if full.shape[0] < w.n:
+            full = np.pad(full, ((0, w.n - full.shape[0]), (0, w.n - full.shape[1])), mode="edge")
+        lit = np.clip((w.height[rows, cols] - full[rows, cols]) / 0.35 + 0.5, 0.0, 1.0)
+        return (self.sun.ambient + self.sun.direct * lit * np.maximum(cos, 0)).astype(np.float32)
+
+    def wall_normal(self, idx: np.ndarray):
+        """Horizontal outward normal (east, north) of a height step at the cells; (0, 0) where it is flat."""
+        gx, gy = self._gradient(idx)
+        g2 = gx * gx + gy * gy
+        inv = np.where(g2 > 0.25, 1.0 / np.sqrt(g2 + 1e-12), 0.0).astype(np.float32)
+        return -gx * inv, -gy * inv
 
 
-def light_world(world: World, sun: Sun, shadow_cell: float = 1.0) -> Lighting:
-    h = world.height
-    inv2c = np.float32(0.5 / world.cell)
-    gx = np.zeros_like(h)  # d/deast
-    gy = np.zeros_like(h)  # d/dnorth (rows grow southward)
-    gx[:, 1:-1] = (h[:, 2:] - h[:, :-2]) * inv2c
-    gy[1:-1, :] = (h[:-2, :] - h[2:, :]) * inv2c
-    g2 = gx * gx + gy * gy
-    steep = g2 > 4.0  # a wall edge, not a sloped roof: the top there is flat
-    s = sun.vector()
-    nx = np.where(steep, np.float32(0), -gx)
-    ny = np.where(steep, np.float32(0), -gy)
-    cos_top = (nx * s[0] + ny * s[1] + s[2]) / np.sqrt(nx * nx + ny * ny + 1.0)
-    lit = lit_fraction(world, sun, shadow_cell)
-    top = sun.ambient + sun.direct * lit * np.maximum(cos_top, 0.0)
-    inv_g = np.where(g2 > 0.25, 1.0 / np.sqrt(g2 + 1e-12), 0.0).astype(np.float32)  # walls and steep slopes
-    return Lighting(top.astype(np.float32), -gx * inv_g, -gy * inv_g, sun)
+def shadow_heights(world: World, sun: Sun, f: int) -> np.ndarray:
+    """Per coarse cell (f x f fine cells, max-pooled): the height below which a point there is in cast shadow.
 
-
-def lit_fraction(world: World, sun: Sun, shadow_cell: float = 1.0) -> np.ndarray:
-    """1 where a cell's surface sees the sun, 0 in cast shadow, soft at the edges.
-
-    Marches on a coarse max-pooled grid: for each coarse cell, the height below which a point is shadowed is
-    max over steps t of H(p + t*sun) - t*tan(elevation). Comparing that with the fine height keeps it monotone:
-    adding an object (a car) only ever darkens other cells.
+    That is max over steps t of H(p + t*sun) - t*tan(elevation). Comparing it with the fine height keeps shadows
+    monotone: adding an object (a car) only ever darkens other cells.
     """
-    f = max(1, int(round(shadow_cell / world.cell)))
     n = world.n // f * f
     h = world.height[:n, :n].reshape(n // f, f, n // f, f).max(axis=(1, 3))
     m = h.shape[0]
-    cs = world.cell * f
     tan_e = np.tan(np.deg2rad(max(sun.elevation, 3.0)))
     s = sun.vector()
     step = np.array([s[0], -s[1]]) / max(abs(s[0]), abs(s[1]))  # (dcol, drow) per coarse step
-    step_len = cs * np.hypot(*step)
+    step_len = world.cell * f * np.hypot(*step)
     hmax = float(h.max())
-    shadow_h = np.full((m, m), -1.0, np.float32)
+    out = np.full((m, m), -1.0, np.float32)
     k = 1
     while hmax - k * step_len * tan_e > 0.05 and k < m:
         dc, dr = int(round(k * step[0])), int(round(k * step[1]))
-        drop = k * step_len * tan_e
-        src = h[max(0, dr):m + min(0, dr), max(0, dc):m + min(0, dc)]
-        dst = shadow_h[max(0, -dr):m + min(0, -dr), max(0, -dc):m + min(0, -dc)]
-        np.maximum(dst, src - drop, out=dst)
+        src = h[max(0, dr) : m + min(0, dr), max(0, dc) : m + min(0, dc)]
+        dst = out[max(0, -dr) : m + min(0, -dr), max(0, -dc) : m + min(0, -dc)]
+        np.maximum(dst, src - k * step_len * tan_e, out=dst)
         k += 1
-    full = cv2.resize(shadow_h, (n, n), interpolation=cv2.INTER_LINEAR)
-    if n != world.n:
-        full = np.pad(full, ((0, world.n - n), (0, world.n - n)), mode="edge")
-    soft = 0.35  # metres of penumbra
-    return np.clip((world.height - full) / soft + 0.5, 0.0, 1.0).astype(np.float32)
+    return out

@@ -31,11 +31,11 @@ class Hits:
 
 
 def sample_distances(cell: float, d_max: float, d_min: float = 0.3) -> np.ndarray:
-    """Steps of 0.8 cell near the camera, growing 1.2% per step further out."""
+    """Steps of 0.8 cell near the camera, growing 1.5% per step further out."""
     out = [d_min]
     step0 = 0.8 * cell
     while out[-1] < d_max:
-        out.append(out[-1] + max(step0, 0.012 * out[-1]))
+        out.append(out[-1] + max(step0, 0.015 * out[-1]))
     return np.asarray(out)
 
 
@@ -59,8 +59,23 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
     col = np.tile(np.arange(W, dtype=np.int64), H)
     q = np.ceil(np.clip(e, -_BAND, _BAND) * 4096).astype(np.int64) + col * band
     k = np.searchsorted(keys.ravel(), q) - col * K
-    miss = k >= K
-    k = np.minimum(k, K - 1)
+    P = H * W
+    out_albedo = np.zeros((P, 3), np.float32)
+    out_shade = np.zeros(P, np.float32)
+    out_cls = np.zeros(P, np.uint8)
+    out_dist = np.full(P, np.inf, np.float32)
+    hit = np.flatnonzero(k < K)  # the rest see past the world: sky or far haze
+    if len(hit):
+        albedo, shade, cls, dist = _shade_hits(world, light, (cx, cy, cz), ux, uy, d32, idx, h, k[hit], col[hit],
+                                               e[hit], K)
+        out_albedo[hit], out_shade[hit], out_cls[hit], out_dist[hit] = albedo, shade, cls, dist
+    return Hits(out_albedo.reshape(H, W, 3), out_shade.reshape(H, W), out_cls.reshape(H, W),
+                out_dist.reshape(H, W))
+
+
+def _shade_hits(world, light, cam, ux, uy, d32, idx, h, k, col, e, K):
+    """Surface, class, albedo and shading at each hit sample k of column col (1-D arrays over hit pixels)."""
+    cx, cy, cz = cam
     s = col * K + k
     cell = idx[s]
     h_hit = h[s]
@@ -69,26 +84,28 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
     top = (cz + e * d_prev >= h_hit - 1e-3) | (h_hit <= 0.01)
     # Top surfaces: the exact crossing of the ray with the plane z = h_hit, for crisp ground texture.
     e_safe = np.where(e < 0, e, np.float32(-1))
-    d_star = np.where(e < 0, (h_hit - cz) / e_safe, d_hit)
-    d_star = np.clip(d_star, d_prev, d_hit)
+    d_star = np.clip(np.where(e < 0, (h_hit - cz) / e_safe, d_hit), d_prev, d_hit)
     uxc, uyc = ux[col], uy[col]
     px, py = cx + uxc * d_star, cy + uyc * d_star
     cell2 = _cells(world, px, py)
-    exact = top & (np.abs(hflat[cell2] - h_hit) < 0.3)
+    exact = top & (np.abs(world.static.height.ravel()[cell2] - h_hit) < 0.3)
     cell = np.where(exact, cell2, cell)
     dist = np.where(top, d_star, d_hit)
 
     cls = world.cls.ravel()[cell]
-    albedo = np.where(top[:, None], world.top.reshape(-1, 3)[cell], world.wall.reshape(-1, 3)[cell])
-    albedo = albedo.astype(np.float32) * np.float32(1 / 255)
-    if exact.any():
-        albedo[exact] = _bilinear(world.top, world, px[exact], py[exact])
-    shade = light.top_shade.ravel()[cell]
+    albedo = np.empty((len(k), 3), np.float32)
+    ex = np.flatnonzero(exact)
+    albedo[ex] = _bilinear(world.static.top, world, px[ex], py[ex])
+    rest = np.flatnonzero(~exact)
+    src = np.where(top[rest, None], world.top.reshape(-1, 3)[cell[rest]], world.wall.reshape(-1, 3)[cell[rest]])
+    albedo[rest] = src * np.float32(1 / 255)
+    shade = np.empty(len(k), np.float32)
+    tp = np.flatnonzero(top)
+    shade[tp] = light.top_shade(cell[tp])
 
     wall = np.flatnonzero(~top)
     if len(wall):
-        wc = cell[wall]
-        nx, ny = light.wall_nx.ravel()[wc], light.wall_ny.ravel()[wc]
+        nx, ny = light.wall_normal(cell[wall])
         flat = (nx == 0) & (ny == 0)
         nx = np.where(flat, -uxc[wall], nx)  # no gradient at this cell: face the camera
         ny = np.where(flat, -uyc[wall], ny)
@@ -100,12 +117,9 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
         if bld.any():
             wb = wall[bld]
             along = px[wb] * -ny[bld] + py[wb] * nx[bld]
-            win = windows_mask(z[bld], along)
-            albedo[wb[win]] = albedo[wb[win]] * 0.35 + np.array([0.12, 0.16, 0.22], np.float32)
-
-    cls = np.where(miss, 0, cls).astype(np.uint8)
-    dist = np.where(miss, np.float32(np.inf), dist)
-    return Hits(albedo.reshape(H, W, 3), shade.reshape(H, W), cls.reshape(H, W), dist.reshape(H, W))
+            win = wb[windows_mask(z[bld], along)]
+            albedo[win] = albedo[win] * 0.35 + np.array([0.12, 0.16, 0.22], np.float32)
+    return albedo, shade, cls, dist
 
 
 def _cells(world: World, x: np.ndarray, y: np.ndarray) -> np.ndarray:

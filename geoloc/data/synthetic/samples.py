@@ -9,9 +9,9 @@ import numpy as np
 
 from . import traffic as T
 from .aerial import render_aerial
-from .appearance import Conditions, base_conditions, finish, other_time
+from .appearance import Conditions, base_conditions, finish, noise_patch, other_time
 from .config import SynthConfig
-from .light import light_world
+from .light import Lighting
 from .panorama import CVUSA_HORIZON, SPHERE_HORIZON, panorama_rays
 from .perspective import Pose, jitter_pose, lane_pose, pinhole_rays
 from .places import Place, build_place
@@ -36,10 +36,13 @@ def make_place(cfg: SynthConfig, rng: np.random.Generator) -> Place:
 
 
 def _texture(world, rng) -> None:
-    """Per-cell brightness noise so large surfaces are not flat colour."""
-    noise = rng.standard_normal(world.height.shape, np.float32) * 5.0
-    for arr in (world.top, world.wall):
-        arr[...] = np.clip(arr + noise[..., None], 0, 255).astype(np.uint8)
+    """Per-cell brightness noise so large surfaces are not flat colour (+-5 levels on tops, +-2 on walls)."""
+    noise = noise_patch(rng, world.height.shape)
+    for arr, amp in ((world.top, 5.0), (world.wall, 2.0)):
+        t = arr.astype(np.int16)
+        t += (noise * np.float32(amp)).astype(np.int16)[..., None]
+        np.clip(t, 0, 255, out=t)
+        arr[...] = t
 
 
 def _street_traffic(rng, place: Place, extent, aerial_agents, change: float, keep, radius, density):
@@ -53,7 +56,7 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     """Aerial tile + street panorama of one place (cvusa: horizon band; cvact: full sphere).
 
     -> {'aerial': S x S x 3 uint8 RGB, 'pano': H x W x 3 uint8 RGB, 'pano_labels': H x W uint8 (0..9),
-        'aerial_conditions', 'street_conditions', 'style'}.
+        'aerial_labels': S x S uint8, 'aerial_conditions', 'street_conditions', 'style'}.
     """
     r_world, r_cond, r_traffic, r_noise, r_sky, *_ = sample_rngs(seed, split, index)
     gap = cfg.gap()
@@ -66,14 +69,15 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
                                [(0, 0)], 5.0, cfg.traffic)
 
     world_a = T.stamp(place.world, agents_a)
-    rgb_a, _ = render_aerial(world_a, light_world(world_a, cond_a.sun), cfg.tile_m, cfg.aerial_size,
+    rgb_a, cls_a = render_aerial(world_a, Lighting(world_a, cond_a.sun), cfg.tile_m, cfg.aerial_size,
                              cond_a.season)
     world_s = T.stamp(place.world, agents_s)
     h, w = (cfg.sphere_height, cfg.sphere_width) if sphere else (cfg.pano_height, cfg.pano_width)
     az, tan_el = panorama_rays(h, w, SPHERE_HORIZON if sphere else CVUSA_HORIZON)
-    rgb_s, cls_s, _ = render_street(world_s, light_world(world_s, cond_s.sun), Sky(r_sky, cond_s.sun),
+    rgb_s, cls_s, _ = render_street(world_s, Lighting(world_s, cond_s.sun), Sky(r_sky, cond_s.sun),
                                     (0.0, 0.0, cfg.camera_height), az, tan_el, cond_s.season)
     return dict(aerial=finish(rgb_a, cond_a, r_noise), pano=finish(rgb_s, cond_s, r_noise), pano_labels=cls_s,
+                aerial_labels=cls_a,
                 aerial_conditions=cond_a, street_conditions=cond_s, style=place.style)
 
 
@@ -85,7 +89,7 @@ def render_view(cfg: SynthConfig, place: Place, pose: Pose, cond: Conditions, ag
     out = {}
     for name, world in (("static", place.world), ("dynamic", T.stamp(place.world, agents))):
         sky = Sky(np.random.default_rng(sky_rng_seed), cond.sun)
-        rgb, cls, _ = render_street(world, light_world(world, cond.sun), sky, cam, az, tan_el, cond.season)
+        rgb, cls, _ = render_street(world, Lighting(world, cond.sun), sky, cam, az, tan_el, cond.season)
         out[f"rgb_{name}"] = finish(rgb, cond, np.random.default_rng(noise_seed))
         out[f"label_{name}"] = cls
     out["mask_dynamic"] = np.where(out["label_dynamic"] >= T.VEHICLE, 255, 0).astype(np.uint8)

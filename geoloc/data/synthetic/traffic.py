@@ -67,6 +67,7 @@ def sample_traffic(rng: np.random.Generator, roads, style: str, extent: float, k
 def stamp(world: World, agents: list[Agent]) -> World:
     """A copy of world with the agents in it (class 8 Vehicle / 9 Pedestrian)."""
     out = world.copy()
+    out.base = world.static
     glass = (40, 48, 56)
     for a in agents:
         if a.kind == VEHICLE:

@@ -30,6 +30,9 @@ class World:
     cls: np.ndarray
     top: np.ndarray
     wall: np.ndarray
+    # The static world a traffic-stamped copy was made from. Surface normals and ground texture are read from it,
+    # so adding a car changes only the pixels that see the car, or its shadow.
+    base: "World | None" = None
 
     @classmethod
     def empty(cls, extent: float, cell: float, ground_rgb, ground_cls: int = 0) -> "World":
@@ -57,6 +60,10 @@ class World:
 
     def copy(self) -> "World":
         return World(self.cell, self.height.copy(), self.cls.copy(), self.top.copy(), self.wall.copy())
+
+    @property
+    def static(self) -> "World":
+        return self if self.base is None else self.base
 
     # -- coordinate helpers -------------------------------------------------------------------------------
     def to_cell(self, x, y):

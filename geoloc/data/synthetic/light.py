@@ -33,29 +33,32 @@ class Lighting:
         self.world, self.sun = world, sun
         self.f = max(1, int(round(shadow_cell / world.cell)))
         self.shadow_h = shadow_heights(world, sun, self.f)
+        self._full = None
 
     def _gradient(self, idx: np.ndarray):
-        """Central differences of the height field at the cells: (d/deast, d/dnorth)."""
+        """Central differences of the (static) height field at the cells: (d/deast, d/dnorth).
+        Neighbours are idx +- 1 and idx +- N, clamped to the grid (views never look at its outermost cells)."""
         n, h = self.world.n, self.world.static.height.ravel()
-        r, c = np.divmod(idx, n)
-        left, right = r * n + np.maximum(c - 1, 0), r * n + np.minimum(c + 1, n - 1)
-        up, down = np.maximum(r - 1, 0) * n + c, np.minimum(r + 1, n - 1) * n + c
+        last = h.size - 1
         k = np.float32(0.5 / self.world.cell)
-        return (h[right] - h[left]) * k, (h[up] - h[down]) * k
+        gx = (h[np.minimum(idx + 1, last)] - h[np.maximum(idx - 1, 0)]) * k
+        gy = (h[np.maximum(idx - n, 0)] - h[np.minimum(idx + n, last)]) * k
+        return gx, gy
+
+    def _shadow_full(self) -> np.ndarray:
+        """The coarse shadow heights bilinearly upsampled to the fine grid (computed once, on first use)."""
+        if self._full is None:
+            m, n = self.shadow_h.shape[0], self.world.n
+            full = cv2.resize(self.shadow_h, (m * self.f, m * self.f), interpolation=cv2.INTER_LINEAR)
+            if full.shape[0] < n:
+                full = np.pad(full, ((0, n - full.shape[0]), (0, n - full.shape[1])), mode="edge")
+            self._full = full
+        return self._full
 
     def lit(self, idx: np.ndarray) -> np.ndarray:
         """1 where the cell's surface sees the sun, 0 in cast shadow, soft over ~0.35 m of height."""
-        n, f = self.world.n, self.f
-        m = self.shadow_h.shape[0]
-        r, c = np.divmod(idx, n)
-        y = np.clip((r + 0.5) / f - 0.5, 0, m - 1)
-        x = np.clip((c + 0.5) / f - 0.5, 0, m - 1)
-        y0, x0 = np.minimum(y.astype(np.int64), m - 2), np.minimum(x.astype(np.int64), m - 2)
-        fy, fx = (y - y0).astype(np.float32), (x - x0).astype(np.float32)
-        s = self.shadow_h.ravel()
-        i = y0 * m + x0
-        sh = (s[i] * (1 - fx) + s[i + 1] * fx) * (1 - fy) + (s[i + m] * (1 - fx) + s[i + m + 1] * fx) * fy
-        return np.clip((self.world.height.ravel()[idx] - sh) / 0.35 + 0.5, 0.0, 1.0)
+        sh = self._shadow_full().ravel()[idx]
+        return np.clip((self.world.height.ravel()[idx] - sh) * np.float32(1 / 0.35) + 0.5, 0.0, 1.0)
 
     def top_shade(self, idx: np.ndarray) -> np.ndarray:
         """ambient + direct * lit * max(0, n . sun) for the upward surface; wall-edge cells count as flat."""
@@ -77,10 +80,7 @@ class Lighting:
         nx, ny = np.where(steep, 0, -gx), np.where(steep, 0, -gy)
         s = self.sun.vector()
         cos = (nx * s[0] + ny * s[1] + s[2]) / np.sqrt(nx * nx + ny * ny + 1.0)
-        m = self.shadow_h.shape[0]
-        full = cv2.resize(self.shadow_h, (m * self.f, m * self.f), interpolation=cv2.INTER_LINEAR)
-        if full.shape[0] < w.n:
-            full = np.pad(full, ((0, w.n - full.shape[0]), (0, w.n - full.shape[1])), mode="edge")
+        full = self._shadow_full()
         lit = np.clip((w.height[rows, cols] - full[rows, cols]) / 0.35 + 0.5, 0.0, 1.0)
         return (self.sun.ambient + self.sun.direct * lit * np.maximum(cos, 0)).astype(np.float32)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from .classes import BUILDINGS
@@ -53,12 +54,15 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
     hflat = world.height.ravel()
     h = hflat[idx]
     t = np.maximum.accumulate((h.reshape(W, K) - cz) / d32[None], axis=1)
-    # Integer keys: column in the high bits, tan(elevation) in 1/4096 steps in the low bits.
-    band = np.int64(1 << 20)
-    keys = (np.clip(t, -_BAND, _BAND) * 4096).astype(np.int64) + (np.arange(W, dtype=np.int64) * band)[:, None]
     col = np.tile(np.arange(W, dtype=np.int64), H)
-    q = np.ceil(np.clip(e, -_BAND, _BAND) * 4096).astype(np.int64) + col * band
-    k = np.searchsorted(keys.ravel(), q) - col * K
+    if tan_el.shape[1] == 1 and np.all(np.diff(tan_el[:, 0]) < 0):
+        k = _first_hits_shared_rows(t, tan_el[:, 0].astype(np.float32)).ravel()
+    else:
+        # Integer keys: column in the high bits, tan(elevation) in 1/4096 steps in the low bits.
+        band = np.int64(1 << 20)
+        keys = (np.clip(t, -_BAND, _BAND) * 4096).astype(np.int64) + (np.arange(W, dtype=np.int64) * band)[:, None]
+        q = np.ceil(np.clip(e, -_BAND, _BAND) * 4096).astype(np.int64) + col * band
+        k = np.searchsorted(keys.ravel(), q) - col * K
     P = H * W
     out_albedo = np.zeros((P, 3), np.float32)
     out_shade = np.zeros(P, np.float32)
@@ -71,6 +75,19 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
         out_albedo[hit], out_shade[hit], out_cls[hit], out_dist[hit] = albedo, shade, cls, dist
     return Hits(out_albedo.reshape(H, W, 3), out_shade.reshape(H, W), out_cls.reshape(H, W),
                 out_dist.reshape(H, W))
+
+
+def _first_hits_shared_rows(t: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Panorama case: every column has the same row elevations e (H,), strictly falling down the rows.
+
+    Sample k of column j covers the rows at or below c_jk = #{rows with e > M_jk}; c falls with k, so the first
+    sample hitting row i is #{k : c_jk > i}: a histogram of c per column and a cumulative sum. -> k (H, W).
+    """
+    W, K = t.shape
+    H = len(e)
+    c = np.searchsorted(-e, -t.ravel(), side="left")  # W*K queries into only H values
+    hist = np.bincount(np.repeat(np.arange(W) * (H + 1), K) + c, minlength=W * (H + 1)).reshape(W, H + 1)
+    return (K - np.cumsum(hist, axis=1)[:, :H]).T
 
 
 def _shade_hits(world, light, cam, ux, uy, d32, idx, h, k, col, e, K):
@@ -131,20 +148,16 @@ def _cells(world: World, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _bilinear(img: np.ndarray, world: World, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of an N x N x 3 uint8 cell image at metre coordinates -> (n, 3) float in [0, 1]."""
-    col, row = world.to_cell(x, y)
-    col, row = col - 0.5, row - 0.5
-    c0, r0 = np.floor(col), np.floor(row)
-    fc, fr = (col - c0)[:, None], (row - r0)[:, None]
-    n = world.n
-    c0 = np.clip(c0.astype(np.int64), 0, n - 1)
-    r0 = np.clip(r0.astype(np.int64), 0, n - 1)
-    c1, r1 = np.minimum(c0 + 1, n - 1), np.minimum(r0 + 1, n - 1)
-    f = img.reshape(-1, 3)
+    """Bilinear lookup of an N x N x 3 uint8 cell image at metre coordinates -> (n, 3) float in [0, 1].
 
-    def g(i):
-        return f[i].astype(np.float32)
-
-    top = g(r0 * n + c0) * (1 - fc) + g(r0 * n + c1) * fc
-    bottom = g(r1 * n + c0) * (1 - fc) + g(r1 * n + c1) * fc
-    return (top * (1 - fr) + bottom * fr) / 255.0
+    One cv2.remap call; remap maps are limited to 32767 columns, so the points are laid out in rows of 4096."""
+    n = len(x)
+    rows = -(-n // 4096)
+    half, inv = world.extent / 2, 1.0 / world.cell
+    mx = np.zeros(rows * 4096, np.float32)
+    my = np.zeros(rows * 4096, np.float32)
+    mx[:n] = (x + half) * inv - 0.5  # cv2 puts integer coordinates at cell centres
+    my[:n] = (half - y) * inv - 0.5
+    out = cv2.remap(img, mx.reshape(rows, 4096), my.reshape(rows, 4096), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, 3)[:n].astype(np.float32) * np.float32(1 / 255)

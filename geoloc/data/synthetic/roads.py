@@ -66,6 +66,10 @@ def visible(world: World, pts: np.ndarray, margin: float = 12.0, stride: int = 4
     if len(inside) == 0:
         return pts[:0]
     sel = pts[inside[0] : inside[-1] + 1]
+    chord = sel[-1] - sel[0]
+    off = np.abs((sel[:, 0] - sel[0, 0]) * chord[1] - (sel[:, 1] - sel[0, 1]) * chord[0])
+    if off.max() <= 0.05 * max(np.hypot(*chord), 1e-9):  # straight: the two ends are enough
+        return sel[[0, -1]]
     return np.concatenate([sel[::stride], sel[-1:]])
 
 

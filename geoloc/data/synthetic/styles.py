@@ -31,9 +31,12 @@ CLOTHES = [(40, 40, 60), (150, 40, 40), (200, 190, 170), (60, 80, 120), (30, 30,
 
 
 def pick(rng: np.random.Generator, palette, jitter: float = 10.0) -> tuple:
-    """A palette colour with a small random offset (uint8 tuple)."""
-    base = np.asarray(palette[int(rng.integers(len(palette)))], np.float64)
-    return tuple(int(v) for v in np.clip(base + rng.normal(0, jitter, 3), 0, 255))
+    """A palette colour with a small random offset, uniform with std `jitter` per channel (uint8 tuple).
+    Called thousands of times per place, so it stays in plain Python after one draw."""
+    u = rng.random(4).tolist()
+    base = palette[int(u[0] * len(palette))]
+    amp = 3.4641 * jitter  # uniform on [-a/2, a/2] has std a / sqrt(12)
+    return tuple(min(255, max(0, int(b + (v - 0.5) * amp))) for b, v in zip(base, u[1:]))
 
 
 def choose_style(rng: np.random.Generator, mix: dict | None) -> str:

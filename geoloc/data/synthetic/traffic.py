@@ -14,7 +14,7 @@ from .classes import PEDESTRIAN, VEHICLE
 from .world import World
 
 # cars / pedestrians per 100 m of road, before the per-view density draw
-DENSITY = {"urban": (7.0, 8.0), "suburban": (3.0, 1.5), "rural": (1.2, 0.15)}
+DENSITY = {"urban": (4.5, 5.0), "suburban": (2.5, 1.2), "rural": (1.2, 0.15)}
 
 
 @dataclass(frozen=True)

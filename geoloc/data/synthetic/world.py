@@ -172,12 +172,11 @@ class World:
         # Only raise the height field: a lower object drawn later never cuts into a taller one.
         cur = self.height[sl]
         take = inside & (h >= cur)
-        if not take.any():
-            return
-        cur[take] = h[take]
-        self.cls[sl][take] = cls
-        self.top[sl][take] = top_rgb
-        self.wall[sl][take] = wall_rgb
+        np.copyto(cur, h, where=take)
+        np.copyto(self.cls[sl], cls, where=take)
+        take3 = take[..., None]
+        np.copyto(self.top[sl], np.asarray(top_rgb, np.uint8), where=take3)
+        np.copyto(self.wall[sl], np.asarray(wall_rgb, np.uint8), where=take3)
 
 
 def windows_mask(z: np.ndarray, s: np.ndarray, floor_h: float = 3.2, bay: float = 2.6) -> np.ndarray:

@@ -60,7 +60,7 @@ class Conditions:
 def base_conditions(rng: np.random.Generator, gap: AppearanceGap) -> Conditions:
     g = gap.resolved()
     sun = Sun(float(rng.uniform(0, 360)), float(rng.uniform(30, 70)))
-    return Conditions(sun, float(rng.uniform(0.0, 0.4)), _gains(rng, g["color_shift"]), g["noise_std"],
+    return Conditions(sun, float(rng.uniform(0.0, 0.25)), _gains(rng, g["color_shift"]), g["noise_std"],
                       int(rng.integers(g["jpeg_quality"], 96)))
 
 
@@ -79,7 +79,7 @@ def _gains(rng, std: float) -> tuple:
     return tuple(float(v) for v in np.exp(rng.normal(0, std, 3) + rng.normal(0, std)))
 
 
-_AUTUMN = np.array([[0.55, 0.75, 0.0], [0.1, 0.55, 0.0], [0.0, 0.1, 0.4]], np.float32)  # rows: out r, g, b
+_AUTUMN = np.array([[0.5, 0.6, 0.0], [0.12, 0.68, 0.0], [0.0, 0.08, 0.45]], np.float32)  # rows: out r, g, b
 _WINTER = np.array([[0.6, 0.35, 0.1], [0.45, 0.4, 0.1], [0.3, 0.3, 0.2]], np.float32)
 
 

@@ -109,7 +109,8 @@ def render_place_views(cfg: SynthConfig, seed: int, split: str, index: int) -> l
     keep = [(ref_pose.x, ref_pose.y), (query_pose.x, query_pose.y)]
     views = []
     for role, pose, cond in (("reference", ref_pose, cond_ref), ("query", query_pose, cond_q)):
-        agents = T.sample_traffic(r_traffic, place.roads, place.style, extent, keep, 7.0, cfg.traffic)
+        # Street scenes for the dynamic-scene method are busier than the cross-view places: 3x the traffic.
+        agents = T.sample_traffic(r_traffic, place.roads, place.style, extent, keep, 5.0, 3.0 * cfg.traffic)
         seeds = r_noise.integers(2**31, size=2)
         v = render_view(cfg, place, pose, cond, agents, int(seeds[0]), int(seeds[1]))
         v.update(role=role, pose=pose, conditions=cond, style=place.style)

@@ -67,12 +67,14 @@ def kerb_furniture(world: World, rng, road: Road, spacing: float, sign_p: float 
     for side in sides:
         for i in range(start, len(p), step):
             q = p[i] + side * off * n[i]
-            if not world.contains(q[0], q[1], 1.0):
-                continue
+            if not world.contains(q[0], q[1], 1.0) or q[0] ** 2 + q[1] ** 2 < 36.0:
+                continue  # outside, or so close to the camera that it would fill the view
             pole(world, rng, q[0], q[1], rng.uniform(6.0, 9.0))
             if rng.random() < sign_p:
                 j = min(len(p) - 1, i + step // 2)
                 s = p[j] + side * off * n[j]
+                if s[0] ** 2 + s[1] ** 2 < 36.0:
+                    continue
                 world.stamp_box(s[0], s[1], 0.8, max(0.3, world.cell * 1.01), 0.0, rng.uniform(2.2, 3.0), 0.0,
                                 OTHERS, S.pick(rng, [(200, 30, 30), (30, 60, 160), (220, 220, 220)], 10),
                                 S.pick(rng, S.METAL, 6))

@@ -2,7 +2,7 @@ import math
 
 import pytest
 import torch
-import torchvision
+from torchvision.models.vgg import cfgs, make_layers
 
 from geoloc.losses.gan import lsgan_d_loss, lsgan_g_loss
 from geoloc.losses.perceptual import VGGPerceptualLoss, resolve_weights
@@ -37,15 +37,21 @@ def test_lsgan_losses():
 
 def test_perceptual_loads_a_local_state_dict(tmp_path):
     torch.manual_seed(123)
-    vgg = torchvision.models.vgg16()
+    features = make_layers(cfgs["D"])  # exactly torchvision's vgg16().features, without the 120M classifier
+    full = {f"features.{k}": v for k, v in features.state_dict().items()}
+    full["classifier.6.bias"] = torch.zeros(1000)
     path = tmp_path / "vgg16.pth"
-    torch.save(vgg.state_dict(), path)  # a full torchvision-style state dict
+    torch.save(full, path)  # a torchvision-style full state dict
     loss = VGGPerceptualLoss(weights=str(path), layers=("relu1_2", "relu2_2"))
-    assert torch.equal(loss.features[7].weight, vgg.features[7].weight)
+    assert torch.equal(loss.features[7].weight, features[7].weight)
     assert not any(p.requires_grad for p in loss.parameters())
     feats_only = tmp_path / "features.pth"
-    torch.save(vgg.features.state_dict(), feats_only)  # a features-only state dict loads too
-    assert torch.equal(VGGPerceptualLoss(str(feats_only), ("relu1_2",)).features[2].weight, vgg.features[2].weight)
+    torch.save(features.state_dict(), feats_only)  # a features-only state dict loads too
+    assert torch.equal(VGGPerceptualLoss(str(feats_only), ("relu1_2",)).features[2].weight, features[2].weight)
+    broken = tmp_path / "broken.pth"
+    torch.save({"features.0.weight": features[0].weight}, broken)
+    with pytest.raises(ValueError, match="not a VGG16 state dict"):
+        VGGPerceptualLoss(str(broken), ("relu1_2",))
 
 
 def test_perceptual_loss_is_zero_for_equal_images_and_has_gradient():

@@ -68,7 +68,7 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     agents_s = _street_traffic(r_traffic, place, extent, agents_a, gap.resolved()["traffic_change"],
                                [(0, 0)], 5.0, cfg.traffic)
 
-    world_a = T.stamp(place.world, agents_a)
+    world_a = T.stamp(place.world, T.near(agents_a, cfg.tile_m / 2 + 20))
     rgb_a, cls_a = render_aerial(world_a, Lighting(world_a, cond_a.sun), cfg.tile_m, cfg.aerial_size,
                              cond_a.season)
     world_s = T.stamp(place.world, agents_s)

@@ -36,32 +36,42 @@ def sample_traffic(rng: np.random.Generator, roads, style: str, extent: float, k
     agents = []
     for r in roads:
         p, t, n = r.frames()
-        inside = np.all(np.abs(p) < extent / 2 - 3, axis=1)
-        idx = np.flatnonzero(inside)
+        idx = np.flatnonzero(np.all(np.abs(p) < extent / 2 - 3, axis=1))
         if len(idx) == 0:
             continue
         for kind, rate in ((VEHICLE, cars_per_100), (PEDESTRIAN, peds_per_100)):
             if kind == PEDESTRIAN and r.sidewalk_w <= 0 and rng.random() > 0.3:
                 continue
-            count = rng.poisson(rate * density * len(idx) / 100.0)
-            for i in rng.choice(idx, size=min(count, len(idx)), replace=False):
-                if kind == VEHICLE:
-                    lane = int(rng.integers(r.lanes))
-                    off = (lane + 0.5 - r.lanes / 2) * r.lane_w
-                    if rng.random() < 0.25:  # parked against the kerb
-                        off = np.sign(off) * (r.half_width - 1.1)
-                    heading = t[i] if off < 0 else -t[i]  # drive on the right
-                else:
-                    walk = r.sidewalk_w if r.sidewalk_w > 0 else 1.5
-                    off = rng.choice([-1, 1]) * (r.half_width + rng.uniform(0.4, max(0.5, walk - 0.4)))
-                    heading = t[i] * rng.choice([-1, 1])
-                q = p[i] + off * n[i]
-                if len(keep) and np.min(np.linalg.norm(keep - q, axis=1)) < clear_radius:
-                    continue
-                bearing = float(np.rad2deg(np.arctan2(heading[0], heading[1])))
-                rgb = S.pick(rng, S.CAR if kind == VEHICLE else S.CLOTHES, 12)
-                agents.append(Agent(kind, float(q[0]), float(q[1]), bearing, rgb, float(rng.uniform(0.9, 1.12))))
+            count = min(int(rng.poisson(rate * density * len(idx) / 100.0)), len(idx))
+            if count == 0:
+                continue
+            i = rng.choice(idx, size=count, replace=False)
+            u = rng.random((count, 4))
+            if kind == VEHICLE:
+                off = (np.floor(u[:, 0] * r.lanes) + 0.5 - r.lanes / 2) * r.lane_w
+                parked = u[:, 1] < 0.25  # against the kerb
+                off = np.where(parked, np.sign(off) * (r.half_width - 1.1), off)
+                heading = np.where((off < 0)[:, None], t[i], -t[i])  # drive on the right
+            else:
+                walk = r.sidewalk_w if r.sidewalk_w > 0 else 1.5
+                side = np.where(u[:, 0] < 0.5, -1.0, 1.0)
+                off = side * (r.half_width + 0.4 + u[:, 1] * max(0.1, walk - 0.8))
+                heading = t[i] * np.where(u[:, 2] < 0.5, -1.0, 1.0)[:, None]
+            q = p[i] + off[:, None] * n[i]
+            ok = np.ones(count, bool)
+            if len(keep):
+                ok = np.min(np.linalg.norm(q[:, None] - keep[None], axis=2), axis=1) >= clear_radius
+            bearing = np.rad2deg(np.arctan2(heading[:, 0], heading[:, 1]))
+            palette = S.CAR if kind == VEHICLE else S.CLOTHES
+            for j in np.flatnonzero(ok):
+                agents.append(Agent(kind, float(q[j, 0]), float(q[j, 1]), float(bearing[j]), S.pick(rng, palette, 12),
+                                    float(0.9 + 0.22 * u[j, 3])))
     return agents
+
+
+def near(agents: list[Agent], half: float) -> list[Agent]:
+    """The agents inside the square |x|, |y| < half (an aerial tile only needs its own, plus shadow casters)."""
+    return [a for a in agents if abs(a.x) < half and abs(a.y) < half]
 
 
 def stamp(world: World, agents: list[Agent]) -> World:
@@ -75,7 +85,9 @@ def stamp(world: World, agents: list[Agent]) -> World:
             out.stamp_box(a.x, a.y, L, W, a.bearing, 0.85, 0.0, VEHICLE, a.rgb, a.rgb)
             dx, dy = np.sin(np.deg2rad(a.bearing)) * -0.2 * L, np.cos(np.deg2rad(a.bearing)) * -0.2 * L
             out.stamp_box(a.x + dx, a.y + dy, 0.5 * L, 0.9 * W, a.bearing, 1.45, 0.0, VEHICLE, a.rgb, glass)
+        elif out.cell >= 0.4:  # a pedestrian fits in one cell
+            out.stamp_column(a.x, a.y, 1.7 * a.size, PEDESTRIAN, (60, 44, 36), a.rgb)
         else:
-            s = max(0.45, out.cell * 1.01)
+            s = 0.45
             out.stamp_box(a.x, a.y, s, s * 0.8, a.bearing, 1.7 * a.size, 0.0, PEDESTRIAN, (60, 44, 36), a.rgb)
     return out

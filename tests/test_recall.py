@@ -239,3 +239,22 @@ def test_missing_faiss_gives_install_hint(monkeypatch):
 def test_bad_inputs(query, ref, kwargs, err, match):
     with pytest.raises(err, match=match):
         recall_at_k(query, ref, **kwargs)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_tensors_give_the_cpu_numbers():
+    query, ref = descriptors(200, 300, 16, noise=0.4, seed=9)
+    q, r = torch.from_numpy(query).cuda(), torch.from_numpy(ref).cuda()
+    assert recall_at_k(q, r, ks=(1, 5, 10, 50)) == recall_at_k(query, ref, ks=(1, 5, 10, 50))
+    _, idx = GalleryIndex(16).add(r).search(q, 5)
+    np.testing.assert_array_equal(idx.numpy(), brute_topk(query, ref, 5)[1])
+
+
+@needs_faiss
+def test_faiss_add_in_blocks_keeps_row_numbers(monkeypatch):
+    import geoloc.eval.gallery as gallery_mod
+
+    monkeypatch.setattr(gallery_mod, "_ADD_BLOCK", 7)
+    query, ref = descriptors(10, 50, 8, noise=0.3, seed=10)
+    _, idx = GalleryIndex(8, backend="faiss").add(ref).search(query, 5)
+    np.testing.assert_array_equal(idx.numpy(), brute_topk(query, ref, 5)[1])

@@ -19,6 +19,7 @@ import torch
 __all__ = ["GalleryIndex", "import_faiss", "as_float_tensor"]
 
 _FORMAT = "geoloc.gallery/1"
+_ADD_BLOCK = 65536
 
 
 def import_faiss():
@@ -122,11 +123,13 @@ class GalleryIndex:
         if self.backend == "faiss":
             if not self._index.is_trained:
                 self.train(x)
-            self._index.add(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
+            for s in range(0, x.shape[0], _ADD_BLOCK):  # IVF-PQ holds a residual per added row: add in blocks
+                self._index.add(np.ascontiguousarray(x[s:s + _ADD_BLOCK].cpu().numpy(), dtype=np.float32))
             return self
         if self._device is None:
             self._device = x.device
         x = x.to(self._device)
+        # The first block is kept without a copy when it is already on the right device.
         self._descriptors = x if self._descriptors is None else torch.cat([self._descriptors, x.to(self._descriptors)])
         return self
 

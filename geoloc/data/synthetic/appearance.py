@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 from dataclasses import asdict, dataclass
 
+import cv2
 import numpy as np
 
 from .classes import VEGETATION
@@ -104,10 +105,13 @@ def apply_season(albedo: np.ndarray, cls: np.ndarray, season: float) -> np.ndarr
 
 def finish(rgb: np.ndarray, cond: Conditions, rng: np.random.Generator) -> np.ndarray:
     """Float RGB in [0, 1] -> uint8 after white balance/exposure and (luminance) sensor noise."""
-    out = rgb * (np.asarray(cond.gains, np.float32) * np.float32(255.0))
+    gains = np.asarray(cond.gains, np.float32) * np.float32(255.0)
+    out = cv2.transform(np.ascontiguousarray(rgb, np.float32), np.diag(gains))
     if cond.noise_std > 0:
-        out += noise_patch(rng, out.shape[:2])[..., None] * np.float32(cond.noise_std)
-    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        n = noise_patch(rng, out.shape[:2]) * np.float32(cond.noise_std)
+        out += cv2.merge([n, n, n])
+    np.maximum(out, 0, out=out)
+    return cv2.convertScaleAbs(out)  # rounds to nearest and saturates at 255
 
 
 @functools.lru_cache(maxsize=1)

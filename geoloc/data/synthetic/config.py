@@ -24,7 +24,7 @@ class SynthConfig:
     fov_deg: float = 90.0
     cell_m: float = 0.3  # world grid cell
     tile_m: float = 144.0  # ground covered by the aerial tile (CVUSA's 750 px zoom-19 tiles: about 0.2 m/px)
-    world_margin: float = 1.5  # world side = tile_m * world_margin, so the street views see past the tile
+    world_margin: float = 1.4  # world side = tile_m * world_margin, so the street views see past the tile
     camera_height: float = 2.2
     style: str = "mix"  # mix | urban | suburban | rural
     traffic: float = 1.0  # car / pedestrian density multiplier

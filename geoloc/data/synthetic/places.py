@@ -103,7 +103,7 @@ def _urban(rng, extent, cell):
         Z.kerb_furniture(w, rng, r, rng.uniform(22, 32))
         if rng.random() < 0.5:  # street trees
             p, t, n = r.frames()
-            for i in range(int(rng.integers(8)), len(p), 14):
+            for i in range(int(rng.integers(8)), len(p), 18):
                 for side in (-1, 1):
                     q = p[i] + side * (r.half_width + r.sidewalk_w * 0.6) * n[i]
                     if not w.contains(q[0], q[1], 5.0):
@@ -139,7 +139,7 @@ def _suburban(rng, extent, cell):
                 Z.fence(w, rng, edge, fence_rgb)
             elif rng.random() < 0.5:
                 Z.hedge(w, rng, edge)
-            for _ in range(int(rng.integers(0, 4))):
+            for _ in range(int(rng.integers(0, 3))):
                 q = back + rng.uniform(-lw / 2, lw / 2) * bearing_vec(theta) + side * rng.uniform(0, 6) * e2
                 Z.tree(w, rng, q[0], q[1])
     for r in roads:
@@ -165,7 +165,7 @@ def _rural(rng, extent, cell):
             kind = rng.random()
             if kind < 0.18:
                 w.fill_polygon(poly, VEGETATION, S.pick(rng, S.GRASS, 10), 0.0)
-                Z.forest(w, rng, c, phi, fu - 1, fv - 1, rng.uniform(4.0, 6.0))
+                Z.forest(w, rng, c, phi, fu - 1, fv - 1, rng.uniform(5.0, 7.0))
             elif kind < 0.3:
                 w.fill_polygon(poly, VEGETATION, S.pick(rng, S.GRASS, 10), 0.0)
             else:

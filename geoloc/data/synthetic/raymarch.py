@@ -101,7 +101,7 @@ def _shade_hits(world, light, cam, ux, uy, d32, idx, h, k, col, e, K):
     top = (cz + e * d_prev >= h_hit - 1e-3) | (h_hit <= 0.01)
     # Top surfaces: the exact crossing of the ray with the plane z = h_hit, for crisp ground texture.
     e_safe = np.where(e < 0, e, np.float32(-1))
-    d_star = np.clip(np.where(e < 0, (h_hit - cz) / e_safe, d_hit), d_prev, d_hit)
+    d_star = np.minimum(np.maximum(np.where(e < 0, (h_hit - cz) / e_safe, d_hit), d_prev), d_hit)
     uxc, uyc = ux[col], uy[col]
     px, py = cx + uxc * d_star, cy + uyc * d_star
     cell2 = _cells(world, px, py)
@@ -142,8 +142,8 @@ def _shade_hits(world, light, cam, ux, uy, d32, idx, h, k, col, e, K):
 def _cells(world: World, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Flat cell index of metre coordinates, clamped to the grid."""
     half, inv, n = world.extent / 2, 1.0 / world.cell, world.n
-    col = np.clip(((x + half) * inv).astype(np.int64), 0, n - 1)
-    row = np.clip(((half - y) * inv).astype(np.int64), 0, n - 1)
+    col = np.minimum(np.maximum(((x + half) * inv).astype(np.int64), 0), n - 1)
+    row = np.minimum(np.maximum(((half - y) * inv).astype(np.int64), 0), n - 1)
     return row * n + col
 
 

@@ -107,21 +107,23 @@ def draw_roads(world: World, roads: list[Road], rng: np.random.Generator, crossi
 def _crossings(world: World, roads: list[Road], line_w: float) -> None:
     """Zebra stripes a few metres before each intersection of two roads."""
     half = world.extent / 2
+    frames = [r.frames() for r in roads]
+    segs = []
     for i, a in enumerate(roads):
-        for b in roads[i + 1 :]:
+        for j in range(i + 1, len(roads)):
+            b = roads[j]
             if abs(np.dot(a.pts[-1] - a.pts[0], b.pts[-1] - b.pts[0])) > 0.95 * np.linalg.norm(
                     a.pts[-1] - a.pts[0]) * np.linalg.norm(b.pts[-1] - b.pts[0]):
                 continue  # parallel: they never meet
             ia, ib = _closest(a.pts, b.pts)
             if np.linalg.norm(a.pts[ia] - b.pts[ib]) > 1.5 or np.abs(a.pts[ia]).max() > half + 10:
                 continue
-            for road, idx, other in ((a, ia, b), (b, ib, a)):
-                p, t, n = road.frames()
+            for road, (p, t, n), idx, other in ((a, frames[i], ia, b), (b, frames[j], ib, a)):
                 for sgn in (-1, 1):
                     c = p[idx] + sgn * (other.half_width + other.sidewalk_w + 1.5) * t[idx]
                     q = c[None] + np.arange(-road.half_width + 0.5, road.half_width - 0.3, 1.0)[:, None] * n[idx]
-                    segs = np.stack([q - 1.2 * t[idx], q + 1.2 * t[idx]], 1)
-                    world.draw_polylines(list(segs), max(line_w, 0.5), ROADLINES, S.MARKING_WHITE)
+                    segs += list(np.stack([q - 1.2 * t[idx], q + 1.2 * t[idx]], 1))
+    world.draw_polylines(segs, max(line_w, 0.5), ROADLINES, S.MARKING_WHITE)
 
 
 def _closest(a: np.ndarray, b: np.ndarray, stride: int = 8):

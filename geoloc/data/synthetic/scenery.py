@@ -25,7 +25,7 @@ def forest(world: World, rng, c, bearing: float, length: float, width: float, sp
            + rng.uniform(-0.4, 0.4, (u.size, 2)) * spacing)
     half = world.extent / 2 + 4
     for p in pts[np.abs(pts).max(axis=1) < half]:
-        tree(world, rng, p[0], p[1], rng.uniform(0.8, 1.3))
+        tree(world, rng, p[0], p[1], rng.uniform(0.9, 1.4))
 
 
 def _axes(bearing: float):

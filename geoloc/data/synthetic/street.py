@@ -20,9 +20,9 @@ def render_street(world: World, light: Lighting, sky: Sky, cam_xyz, az_deg: np.n
     rgb = albedo * hits.shade[..., None]
     tan_full = np.broadcast_to(tan_el, hits.cls.shape)
     az_full = np.broadcast_to(np.asarray(az_deg)[None, :], hits.cls.shape)
-    fog = 1.0 - np.exp(-np.minimum(hits.dist, 1e6) / fog_dist)
-    haze = sky.horizon.astype(np.float32) * 0.95
-    rgb = rgb * (1 - fog[..., None]) + haze * fog[..., None]
+    fog = -np.expm1(hits.dist * np.float32(-1.0 / fog_dist))  # 1 - exp(-d / fog_dist); 1 at infinity
+    haze = sky.horizon * np.float32(0.95)
+    rgb += (haze - rgb) * fog[..., None]
     sky_px = np.isinf(hits.dist) & (tan_full >= 0)
     if sky_px.any():
         rgb[sky_px] = sky.color(az_full[sky_px], tan_full[sky_px])

@@ -81,10 +81,7 @@ def stamp(world: World, agents: list[Agent]) -> World:
     glass = (40, 48, 56)
     for a in agents:
         if a.kind == VEHICLE:
-            L, W = 4.4 * a.size, 1.85 * a.size
-            out.stamp_box(a.x, a.y, L, W, a.bearing, 0.85, 0.0, VEHICLE, a.rgb, a.rgb)
-            dx, dy = np.sin(np.deg2rad(a.bearing)) * -0.2 * L, np.cos(np.deg2rad(a.bearing)) * -0.2 * L
-            out.stamp_box(a.x + dx, a.y + dy, 0.5 * L, 0.9 * W, a.bearing, 1.45, 0.0, VEHICLE, a.rgb, glass)
+            out.stamp_vehicle(a.x, a.y, 4.4 * a.size, 1.85 * a.size, a.bearing, VEHICLE, a.rgb, glass)
         elif out.cell >= 0.4:  # a pedestrian fits in one cell
             out.stamp_column(a.x, a.y, 1.7 * a.size, PEDESTRIAN, (60, 44, 36), a.rgb)
         else:

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .classes import BUILDINGS
 
 _SHIFT = 4  # cv2 fixed-point bits: polygons are drawn with 1/16-cell precision
 _ONE = 1 << _SHIFT
@@ -114,15 +113,16 @@ class World:
     # -- raised objects (buildings, trees, vehicles) -------------------------------------------------------
     def _patch(self, x: float, y: float, radius: float):
         """Slices and local metre coordinates (dx east, dy north) of the cells within radius of (x, y)."""
-        col, row = self.to_cell(x, y)
-        r = radius / self.cell + 1
+        c, half = self.cell, self.extent / 2
+        col, row = (x + half) / c, (half - y) / c
+        r = radius / c + 1
         c0, c1 = max(0, int(col - r)), min(self.n, int(col + r) + 1)
         r0, r1 = max(0, int(row - r)), min(self.n, int(row + r) + 1)
         if c0 >= c1 or r0 >= r1:
             return None
-        cc = (np.arange(c0, c1, dtype=np.float32) + 0.5) - col
-        rr = (np.arange(r0, r1, dtype=np.float32) + 0.5) - row
-        return (slice(r0, r1), slice(c0, c1)), cc[None, :] * self.cell, -rr[:, None] * self.cell
+        dx = (np.arange(c0, c1, dtype=np.float32) + np.float32(0.5 - col)) * np.float32(c)
+        dy = (np.arange(r0, r1, dtype=np.float32) + np.float32(0.5 - row)) * np.float32(-c)
+        return (slice(r0, r1), slice(c0, c1)), dx[None, :], dy[:, None]
 
     def stamp_box(self, x, y, length, width, angle, h_wall, h_roof, cls, roof_rgb, wall_rgb,
                   ridge_along: bool = True) -> None:
@@ -155,6 +155,21 @@ class World:
             self.top[r, c] = top_rgb
             self.wall[r, c] = wall_rgb
 
+    def stamp_vehicle(self, x, y, length, width, angle, cls, rgb, glass_rgb) -> None:
+        """A car in one stamp: a 0.85 m body box with a 1.45 m glass cabin over its rear-middle half."""
+        p = self._patch(x, y, 0.5 * float(np.hypot(length, width)))
+        if p is None:
+            return
+        sl, dx, dy = p
+        a = np.deg2rad(angle)
+        u = dx * np.float32(np.sin(a)) + dy * np.float32(np.cos(a))
+        v = dx * np.float32(np.cos(a)) - dy * np.float32(np.sin(a))
+        inside = (np.abs(u) <= length / 2) & (np.abs(v) <= width / 2)
+        cabin = inside & (np.abs(u + 0.2 * length) <= 0.25 * length) & (np.abs(v) <= 0.45 * width)
+        h = np.where(cabin, np.float32(1.45), np.float32(0.85))
+        wall = np.where(cabin[..., None], np.asarray(glass_rgb, np.uint8), np.asarray(rgb, np.uint8))
+        self._write(sl, inside, h, cls, rgb, wall)
+
     def stamp_dome(self, x, y, radius, h_base, h_crown, cls, rgb, wall_rgb=None) -> None:
         """A round crown (tree, bush): height h_base + h_crown*sqrt(1-(r/R)^2)."""
         p = self._patch(x, y, radius)
@@ -184,7 +199,3 @@ def windows_mask(z: np.ndarray, s: np.ndarray, floor_h: float = 3.2, bay: float 
     fz = np.mod(z, floor_h) / floor_h
     fs = np.mod(s, bay) / bay
     return (fz > 0.35) & (fz < 0.8) & (fs > 0.2) & (fs < 0.75) & (z > 2.5)
-
-
-def is_building(cls: np.ndarray) -> np.ndarray:
-    return cls == BUILDINGS

@@ -101,3 +101,20 @@ def test_real_cvact_sample_loads_with_a_written_act_data_mat(tmp_path):
     full = cv2.imread(str(REALDATA / "cvact_mini/ANU_data_small/streetview/sample01_grdView.jpg"))
     assert street.shape[0] == full.shape[0] // 2  # the horizon band rows 208:624 of 832
     assert ds[0]["query"].shape == (3, 128, 128)
+
+
+@pytest.mark.parametrize("turns,flip", [(1, False), (2, False), (3, True), (0, True)])
+def test_joint_flip_rotate_keeps_the_pair_geometrically_true(turns, flip):
+    """aerial_to_polar(augmented aerial) must equal the augmented panorama built from aerial_to_polar(aerial)."""
+    from geoloc.data.polar import aerial_to_polar
+
+    rng = np.random.default_rng(0)
+    aerial = cv2.resize(rng.integers(0, 255, (8, 8, 3), dtype=np.uint8), (128, 128), interpolation=cv2.INTER_CUBIC)
+    street = aerial_to_polar(aerial, (32, 128))
+    new_street, new_aerial = crossview.flip_rotate(street, aerial, turns, flip)
+    expected = aerial_to_polar(new_aerial, (32, 128)).astype(int)
+    error = np.abs(new_street.astype(int) - expected).mean()
+    # a quarter turn the wrong way is far worse; the residual is the half-pixel shift of the image centre under
+    # the flip/rotation (S/2 lies between pixels)
+    wrong = np.abs(np.roll(new_street, 128 // 4, axis=1).astype(int) - expected).mean()
+    assert error < 8 and error < 0.3 * wrong

@@ -37,6 +37,7 @@ class CrossViewDataConfig:
     val_batch_size: int = 0  # 0 = batch_size
     rotation_deg: float = 0.0  # train: rotate the aerial-like query by U(-r, r) degrees (panorama column roll)
     color_jitter: float = 0.0  # train: brightness/contrast/saturation jitter strength, 0 = off
+    joint_flip_rotate: bool = False  # train: flip / rotate by k*90° the aerial and the panorama consistently
     check_files: str = "decode"  # decode | exists | off
     max_train: int = 0  # 0 = all; for quick runs
     max_val: int = 0
@@ -120,7 +121,9 @@ class CrossViewPairs(Dataset):
 
 def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
           rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
-    """Apply the alignment switch (and the train-time rotation) to one decoded pair."""
+    """Apply the alignment switch (and the train-time augmentation) to one decoded pair."""
+    if rng is not None and cfg.joint_flip_rotate:
+        street, aerial = flip_rotate(street, aerial, int(rng.integers(4)), bool(rng.integers(2)))
     if rng is not None and cfg.rotation_deg > 0:
         # rotating the aerial-like image by θ is a circular shift of the panorama by θ/360 of its width
         shift = int(round(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg) / 360.0 * street.shape[1]))
@@ -132,6 +135,23 @@ def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
     if cfg.alignment == "polar":
         return resize(street, pano_hw), polar.aerial_to_polar(aerial, pano_hw)
     return resize(street, pano_hw), resize(aerial, (s, s))
+
+
+def flip_rotate(street: np.ndarray, aerial: np.ndarray, quarter_turns: int, flip: bool):
+    """The same place seen in a mirrored and/or rotated world: a new, geometrically true pair.
+
+    Panorama column j looks along bearing 180° + 360°·j/W (north at the centre). Mirroring the aerial east-west
+    maps bearing b to -b, i.e. column j to column -j (mod W); turning the aerial clockwise by 90° makes column j
+    show what column j - W/4 showed.
+    """
+    w = street.shape[1]
+    if flip:
+        aerial = aerial[:, ::-1]
+        street = street[:, (-np.arange(w)) % w]
+    for _ in range(quarter_turns):
+        aerial = cv2.rotate(np.ascontiguousarray(aerial), cv2.ROTATE_90_CLOCKWISE)
+        street = np.roll(street, w // 4, axis=1)
+    return np.ascontiguousarray(street), np.ascontiguousarray(aerial)
 
 
 def resize(img: np.ndarray, hw: tuple[int, int]) -> np.ndarray:

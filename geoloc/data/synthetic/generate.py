@@ -5,7 +5,7 @@ config). It is written first with `"complete": false` and rewritten with `true` 
 - an empty or new `out` is generated into;
 - a complete dataset with the same marker is returned at once;
 - an interrupted one with the same marker is resumed (samples finished before are kept: each one leaves a record
-  in `.geoloc_partial/` only after all its files were renamed into place);
+  in `.geoloc_partial/` only after all its files were written; unrecorded samples are rendered again);
 - any other non-empty directory is refused, and nothing in it is deleted or mixed.
 """
 from __future__ import annotations
@@ -144,7 +144,7 @@ def _run(args) -> None:
     else:
         pair = render_pair(cfg, seed, split, index, sphere=layout == "cvact")
         (LY.write_cvusa_sample if layout == "cvusa" else LY.write_cvact_sample)(root, number, pair)
-    LY.write_bytes(root / PARTIAL / f"{number:07d}.json", json.dumps(record).encode())
+    LY.write_bytes(root / PARTIAL / f"{number:07d}.json", json.dumps(record).encode())  # last: marks it done
 
 
 def _finish(layout: str, root: Path, jobs, done: Path) -> None:

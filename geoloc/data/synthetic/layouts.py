@@ -6,7 +6,9 @@
 - cvact: `ANU_data_small/streetview/{id}_grdView.jpg`, `ANU_data_small/satview_polish/{id}_satView_polish.jpg` and
   `ACT_data.mat` with panoIds, trainSet.trainInd, valSet.valInd, valSetAll.valInd (1-based) and utm.
 - dynamic: see docs/dynamic_layout.md.
-Every file is written to a temporary name and renamed, so a killed run never leaves a truncated file behind.
+Index files and the marker are written to a temporary name and renamed, so they are never seen half-written.
+Per-sample files are written in place: a sample counts as done only once its record in `.geoloc_partial/` exists
+(written after its files), so a killed run re-renders, and overwrites, any sample it had not finished.
 """
 from __future__ import annotations
 
@@ -25,18 +27,25 @@ DYNAMIC_HEADER = "sample,place,role,x,y,yaw,sun_azimuth,sun_elevation\n"
 DYNAMIC_DIRS = ("rgb_dynamic", "rgb_static", "label_static", "label_dynamic", "mask_dynamic")
 
 
-def write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+def write_bytes(path: Path, data: bytes, atomic: bool = True) -> None:
+    """Write a file, creating its folder on first need (trying first saves a mkdir per file)."""
+    target = path.with_name(path.name + ".tmp") if atomic else path
+    try:
+        f = open(target, "wb")
+    except FileNotFoundError:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(target, "wb")
+    with f:
+        f.write(data)
+    if atomic:
+        os.replace(target, path)
 
 
 def encode(img: np.ndarray, ext: str, quality: int = 95) -> bytes:
     """RGB (or single-channel) uint8 -> encoded bytes; JPEG without optimisation flags, so it is deterministic."""
     if img.ndim == 3:
         img = np.ascontiguousarray(img[..., ::-1])
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if ext == ".jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 3]
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if ext == ".jpg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
     ok, buf = cv2.imencode(ext, img, params)
     if not ok:
         raise RuntimeError(f"cv2 could not encode a {ext} image of shape {img.shape}")
@@ -52,9 +61,9 @@ def cvusa_files(number: int) -> tuple[str, str, str]:
 
 def write_cvusa_sample(root: Path, number: int, pair: dict) -> None:
     a, p, l = cvusa_files(number)
-    write_bytes(root / a, encode(pair["aerial"], ".jpg", pair["aerial_conditions"].jpeg_quality))
-    write_bytes(root / p, encode(pair["pano"], ".jpg", pair["street_conditions"].jpeg_quality))
-    write_bytes(root / l, encode(pair["pano_labels"], ".png"))
+    write_bytes(root / a, encode(pair["aerial"], ".jpg", pair["aerial_conditions"].jpeg_quality), atomic=False)
+    write_bytes(root / p, encode(pair["pano"], ".jpg", pair["street_conditions"].jpeg_quality), atomic=False)
+    write_bytes(root / l, encode(pair["pano_labels"], ".png"), atomic=False)
 
 
 def write_cvusa_splits(root: Path, numbers: dict) -> None:
@@ -76,8 +85,8 @@ def cvact_files(number: int) -> tuple[str, str]:
 
 def write_cvact_sample(root: Path, number: int, pair: dict) -> None:
     g, s = cvact_files(number)
-    write_bytes(root / g, encode(pair["pano"], ".jpg", pair["street_conditions"].jpeg_quality))
-    write_bytes(root / s, encode(pair["aerial"], ".jpg", pair["aerial_conditions"].jpeg_quality))
+    write_bytes(root / g, encode(pair["pano"], ".jpg", pair["street_conditions"].jpeg_quality), atomic=False)
+    write_bytes(root / s, encode(pair["aerial"], ".jpg", pair["aerial_conditions"].jpeg_quality), atomic=False)
 
 
 def place_utm(number: int, spacing: float = 400.0) -> tuple[float, float]:
@@ -113,11 +122,8 @@ def dynamic_stem(place: int, role: str) -> str:
 
 
 def write_dynamic_view(root: Path, stem: str, view: dict) -> None:
-    write_bytes(root / "rgb_dynamic" / f"{stem}.png", encode(view["rgb_dynamic"], ".png"))
-    write_bytes(root / "rgb_static" / f"{stem}.png", encode(view["rgb_static"], ".png"))
-    write_bytes(root / "label_static" / f"{stem}.png", encode(view["label_static"], ".png"))
-    write_bytes(root / "label_dynamic" / f"{stem}.png", encode(view["label_dynamic"], ".png"))
-    write_bytes(root / "mask_dynamic" / f"{stem}.png", encode(view["mask_dynamic"], ".png"))
+    for folder in DYNAMIC_DIRS:
+        write_bytes(root / folder / f"{stem}.png", encode(view[folder], ".png"), atomic=False)
 
 
 def dynamic_row(stem: str, place: int, view: dict) -> str:

@@ -12,8 +12,9 @@ from .world import World
 def tree(world: World, rng, x: float, y: float, scale: float = 1.0) -> None:
     if not world.contains(x, y, 5.0):
         return
-    r = scale * rng.uniform(1.8, 4.0)
-    world.stamp_dome(x, y, r, h_base=rng.uniform(1.5, 4.0) * scale, h_crown=r * rng.uniform(0.9, 1.6),
+    u = rng.random(3).tolist()  # one draw: thousands of trees per place
+    r = scale * (1.8 + 2.2 * u[0])
+    world.stamp_dome(x, y, r, h_base=(1.5 + 2.5 * u[1]) * scale, h_crown=r * (0.9 + 0.7 * u[2]),
                      cls=VEGETATION, rgb=S.pick(rng, S.TREE, 10))
 
 

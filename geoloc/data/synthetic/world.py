@@ -142,7 +142,7 @@ class World:
         if not inside.any():
             return
         across = np.abs(v) / (width / 2) if ridge_along else np.abs(u) / (length / 2)
-        h = (h_wall + h_roof * (1.0 - np.clip(across, 0, 1))).astype(np.float32)
+        h = (h_wall + h_roof * (1.0 - np.minimum(across, 1))).astype(np.float32)
         self._write(sl, inside, h, cls, roof_rgb, wall_rgb)
 
     def stamp_column(self, x: float, y: float, height: float, cls: int, top_rgb, wall_rgb) -> None:
@@ -180,7 +180,7 @@ class World:
         inside = q <= 1.0
         if not inside.any():
             return
-        h = (h_base + h_crown * np.sqrt(np.clip(1.0 - q, 0, 1))).astype(np.float32)
+        h = (h_base + h_crown * np.sqrt(np.maximum(1.0 - q, 0))).astype(np.float32)
         self._write(sl, inside, h, cls, rgb, rgb if wall_rgb is None else wall_rgb)
 
     def _write(self, sl, inside, h, cls, top_rgb, wall_rgb) -> None:

@@ -83,6 +83,11 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
     again = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "best.pt", out)
     assert again["R@1"] == vpr["R@1"] and json.loads(out.read_text())["num_queries"] == 4
     assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns == mtime
+    # other weights: the gallery is coded again, the vocabulary (image settings only) is kept
+    vocab_mtime = (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns
+    mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "last.pt")
+    assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns != mtime
+    assert (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns == vocab_mtime
 
     # Empty Cities 3-panel images: static-image recovery scores
     ec = tmp_path / "ec"

@@ -24,7 +24,7 @@ from geoloc.engine import distributed as dist
 from geoloc.eval.image import image_scores_per_image
 from geoloc.tasks.mmdip.config import DATASETS, DynamicDataConfig, MMDIPConfig
 from geoloc.tasks.mmdip.joint import JointTask
-from geoloc.tasks.mmdip.retrieval import evaluate_retrieval
+from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
 
 TRANSFORM_KEYS = ("image_size",)  # must stay as trained
@@ -114,7 +114,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     result = {"phase1": best1, "phase2": best2}
     if data_cfg.name == "dynamic" and dist.is_main():
         out = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
-                                 run_dir / "vpr", data_cfg.val_batch_size, trainer_cfg.num_workers)
+                                 run_dir / "vpr", model_id(run_dir / "phase2" / "best.pt"),
+                                 data_cfg.val_batch_size, trainer_cfg.num_workers)
         result = {**out["metrics"], **result}  # recall keys at the top, as the cross-view runner returns them
         print_recall(out["metrics"], f"MMDIP retrieval, {data_cfg.split} split, L={task_cfg.vpr.levels}")
         (run_dir / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -172,7 +173,7 @@ def evaluate(cfg: DictConfig, ckpt_path, metrics_out=None) -> dict:
     elif data_cfg.name == "dynamic":
         artefacts = ckpt_path.resolve().parent.parent / "vpr"
         metrics = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
-                                     artefacts, data_cfg.val_batch_size)["metrics"]
+                                     artefacts, model_id(ckpt_path), data_cfg.val_batch_size)["metrics"]
         print_recall(metrics, f"MMDIP retrieval, {data_cfg.split} split, ckpt {ckpt_path}")
     else:
         sums, n = {}, 0

@@ -126,11 +126,28 @@ def recall(q_bow, q_spm, r_bow, r_spm, alpha: float, ks) -> tuple[dict, torch.Te
     return recall_at_k(q, r, ks=ks), retrieval_ranks(q, r)
 
 
+def _reusable(path: Path, meta: dict) -> bool:
+    """An artefact is reused only when it was made with the same settings (and the same model)."""
+    manifest = path.with_suffix(".json")
+    return path.is_file() and manifest.is_file() and json.loads(manifest.read_text()) == meta
+
+
+def _mark(path: Path, meta: dict) -> None:
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def model_id(ckpt: Path) -> str:
+    """Identifies the weights a gallery was coded with: the checkpoint's path and modification time."""
+    ckpt = Path(ckpt).resolve()
+    return f"{ckpt}@{ckpt.stat().st_mtime_ns}"
+
+
 def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, device, artefact_dir: Path,
-                       batch_size: int = 8, num_workers: int = 0, extra_levels=(), max_train_images: int = 0,
-                       log=print) -> dict:
+                       model: str, batch_size: int = 8, num_workers: int = 0, extra_levels=(), log=print) -> dict:
     """Fused retrieval on `split` of a `dynamic` layout; returns metrics, ranks and per-query timings.
 
+    `model` identifies the weights (model_id of the checkpoint): a saved gallery is reused only for the same
+    weights and settings, the vocabulary for the same ORB / vocabulary settings.
     Keys: R@K / R@1% / num_queries (BoW + SPM at cfg.levels), BoW/R@K (recovered image only), SPM/R@K,
     dynamic-BoW/R@K (the raw dynamic query, no recovery), L{l}/R@K and L{l}/coding_ms for `extra_levels`,
     ms/<stage> per query.
@@ -140,29 +157,33 @@ def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, devic
     task.eval().to(device)
     coder = Coder(cfg, task.num_classes)
     vocab_path = artefact_dir / "vocabulary.npz"
-    if vocab_path.is_file():
+    vocab_meta = {"root": str(Path(root).resolve()), "image_size": list(image_size),
+                  **{k: getattr(cfg, k) for k in ("vocab_size", "vocab_iters", "orb_features", "orb_patch_size",
+                                                  "orb_fast_threshold")}}
+    if _reusable(vocab_path, vocab_meta):
         coder.vocab = Vocabulary.load(vocab_path)
     else:
         train_set = DynamicDataset(root, "train", image_size=image_size, check="off")
-        idx = range(len(train_set)) if not max_train_images else range(min(max_train_images, len(train_set)))
-        imgs = [to_uint8(train_set[i]["static"][None])[0] for i in idx]
+        imgs = [to_uint8(train_set[i]["static"][None])[0] for i in range(len(train_set))]
         coder.fit_vocabulary(imgs).save(vocab_path)
+        _mark(vocab_path, vocab_meta)
         log(f"vocabulary: {coder.vocab.size} words from {len(imgs)} training static images -> {vocab_path}")
 
     gallery_path = artefact_dir / f"gallery_{split}_{cfg.gallery_seg}.npz"
-    refs = DynamicDataset(root, split, image_size=image_size, roles=("reference",), check="off")
-    if gallery_path.is_file():
-        gallery = Gallery.load(gallery_path)
-        ref_segs = np.load(artefact_dir / f"gallery_{split}_{cfg.gallery_seg}_seg.npy")
+    seg_path = artefact_dir / f"gallery_{split}_{cfg.gallery_seg}_seg.npy"
+    gallery_meta = {**vocab_meta, "split": split, "gallery_seg": cfg.gallery_seg, "levels": cfg.levels,
+                    "model": model if cfg.gallery_seg == "predicted" else None}
+    if _reusable(gallery_path, gallery_meta) and seg_path.is_file():
+        gallery, ref_segs = Gallery.load(gallery_path), np.load(seg_path)
     else:
+        refs = DynamicDataset(root, split, image_size=image_size, roles=("reference",), check="off")
         ref_imgs, ref_segs, ref_places = _run_references(task, _loader(refs, batch_size, num_workers), device,
                                                          cfg.gallery_seg == "label")
         gallery = Gallery(coder.bow(ref_imgs), coder.spm(ref_segs, cfg.levels), ref_places, cfg.levels)
         gallery.save(gallery_path)
-        np.save(artefact_dir / f"gallery_{split}_{cfg.gallery_seg}_seg.npy", ref_segs)
+        np.save(seg_path, ref_segs)
+        _mark(gallery_path, gallery_meta)
         log(f"gallery: {len(ref_places)} references of split '{split}' -> {gallery_path}")
-    ref_spm = gallery.spm if gallery.levels == cfg.levels else coder.spm(ref_segs, cfg.levels)
-
     queries = DynamicDataset(root, split, image_size=image_size, roles=("query",), check="off")
     rec, q_segs, q_places, q_inputs, seconds = _run_queries(task, _loader(queries, batch_size, num_workers), device)
     t0 = time.perf_counter()
@@ -172,7 +193,7 @@ def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, devic
     t2 = time.perf_counter()
     n = len(q_places)
     order = match_order(q_places, gallery.places)
-    r_bow, r_spm, r_segs = gallery.bow[order], ref_spm[order], ref_segs[order]
+    r_bow, r_spm, r_segs = gallery.bow[order], gallery.spm[order], ref_segs[order]
 
     ks = tuple(cfg.ks)
     t3 = time.perf_counter()

@@ -35,7 +35,7 @@ from geoloc.data.dynamic import STATIC_CLASSES, load_class_fractions  # noqa: E4
 from geoloc.data.synthetic.classes import colorize  # noqa: E402
 from geoloc.eval.figures import _grid, _save  # noqa: E402
 from geoloc.tasks.mmdip.pipeline import build_split, dataset_root, parse, run_phase1, run_phase2  # noqa: E402
-from geoloc.tasks.mmdip.retrieval import evaluate_retrieval  # noqa: E402
+from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id  # noqa: E402
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 SEGMENTERS = {"erfnet": "ERFNet", "fcn": "FCN-8s (small)", "unet": "U-Net"}
@@ -151,13 +151,12 @@ def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:
         gen_results[v] = {k: best[k] for k in ("L1", "L2", "PSNR", "SSIM")}
         art = out / f"vpr_{v}"
         art.mkdir(exist_ok=True)
-        shared_vocab = out / "vocabulary.npz"
-        if shared_vocab.is_file():  # one vocabulary for every generator
-            shutil.copy(shared_vocab, art / "vocabulary.npz")
+        if v != variants[0]:  # one vocabulary for every generator
+            for name in ("vocabulary.npz", "vocabulary.json"):
+                shutil.copy(out / f"vpr_{variants[0]}" / name, art / name)
         res = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device, art,
-                                 data_cfg.val_batch_size, extra_levels=LEVELS if v == "ssggnet" else ())
-        if not shared_vocab.is_file():
-            shutil.copy(art / "vocabulary.npz", shared_vocab)
+                                 model_id(out / f"phase2_{v}" / "best.pt"), data_cfg.val_batch_size,
+                                 extra_levels=LEVELS if v == "ssggnet" else ())
         vpr[v], examples[v] = res["metrics"], res["examples"]
         ranks[f"{VARIANTS[v]} + BoW"] = res["ranks"]["BoW"]
         if v == "ssggnet":

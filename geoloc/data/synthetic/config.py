@@ -89,7 +89,7 @@ PRESETS = {
                  cell_m=1.0, tile_m=96.0, train=8, val=4),
     # default training runs: cvusa layout at half size, and a small dynamic-scene set
     "small": dict(aerial_size=256, pano_height=112, pano_width=616, sphere_height=256, sphere_width=512,
-                  view_size=128, cell_m=0.5, world_margin=1.3, train=1200, val=300),
+                  view_size=128, cell_m=0.5625, world_margin=1.3, train=1200, val=300),  # 1 aerial px per cell
     "dynamic_small": dict(view_size=160, cell_m=0.5, world_margin=1.3, train=300, val=100),
     "dynamic_tiny": dict(view_size=48, cell_m=1.0, tile_m=96.0, train=3, val=2),
     # the real datasets' sizes and counts

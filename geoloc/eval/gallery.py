@@ -159,9 +159,9 @@ class GalleryIndex:
             best_s = torch.empty(qc.shape[0], 0, dtype=ref.dtype, device=ref.device)
             best_i = torch.empty(qc.shape[0], 0, dtype=torch.long, device=ref.device)
             for r0 in range(0, ref.shape[0], step):
-                s = qc @ ref[r0:r0 + step].t()
-                cand_s = torch.cat([best_s, s], dim=1)
-                cand_i = torch.cat([best_i, torch.arange(r0, r0 + s.shape[1], device=ref.device).expand_as(s)], 1)
+                scores = qc @ ref[r0:r0 + step].t()
+                block_s, block_i = scores.topk(min(k, scores.shape[1]), dim=1)
+                cand_s, cand_i = torch.cat([best_s, block_s], dim=1), torch.cat([best_i, block_i + r0], dim=1)
                 best_s, pos = cand_s.topk(min(k, cand_s.shape[1]), dim=1)
                 best_i = cand_i.gather(1, pos)
             out_s.append(best_s.float().cpu())

@@ -24,14 +24,14 @@ HELP = {
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--layout", required=True, choices=LAYOUTS)
     p.add_argument("--out", required=True, help="output directory (new, empty, or an earlier run's)")
     p.add_argument("--train", type=int, default=None, help="train pairs (dynamic: places); default: preset's")
     p.add_argument("--val", type=int, default=None, help="val pairs (dynamic: places); default: preset's")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="default 0")
     p.add_argument("--preset", default=None, choices=sorted(PRESETS), help="default: the layout's full size")
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1); output is the same")
     p.add_argument("--no-progress", action="store_true")
     defaults = SynthConfig()
     for name in FIELDS:

@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     try:
         out = generate(a.layout, a.out, a.train, a.val, seed=a.seed, preset=a.preset, workers=a.workers,
                        progress=not a.no_progress, **overrides)
-    except (ValueError, TypeError, FileExistsError, RuntimeError) as err:
+    except (ValueError, TypeError, OSError, RuntimeError) as err:
         p.exit(2, f"error: {err}\n")
     print(out)
     return 0

@@ -1,5 +1,8 @@
-"""Losses: the cross-view soft-margin triplet and its global hard-negative queue."""
+"""Losses: the cross-view soft-margin triplet and its GMS queue; the dynamic-scene segmentation / GAN losses."""
+from geoloc.losses.gan import lsgan_d_loss, lsgan_g_loss
 from geoloc.losses.gms_queue import GMSQueue
+from geoloc.losses.perceptual import VGGPerceptualLoss
+from geoloc.losses.segmentation import class_weights
 from geoloc.losses.triplet import soft_margin_triplet
 
-__all__ = ["GMSQueue", "soft_margin_triplet"]
+__all__ = ["GMSQueue", "VGGPerceptualLoss", "class_weights", "lsgan_d_loss", "lsgan_g_loss", "soft_margin_triplet"]

@@ -14,14 +14,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-VGG16_IMAGENET_FILE = "vgg16-397923af.pth"  # torchvision's VGG16_Weights.IMAGENET1K_V1 file name
+from geoloc.models.vgg import MissingWeightsError, imagenet_weights_path
+
 LAYERS = {"relu1_2": 3, "relu2_2": 8, "relu3_3": 15, "relu4_3": 22}
 VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
 _MEAN, _STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
-
-
-def imagenet_weights_path() -> Path:
-    return Path(torch.hub.get_dir()) / "checkpoints" / VGG16_IMAGENET_FILE
 
 
 def _load_features_state(path: Path) -> dict[str, torch.Tensor]:
@@ -35,15 +32,11 @@ def resolve_weights(weights: str) -> Path | None:
     """Map the `weights` option to a file (None for random weights); fail with where to put the file."""
     if weights in ("none", "", None):
         return None
-    path = imagenet_weights_path() if weights == "imagenet" else Path(weights).expanduser()
-    if not path.is_file():
-        hint = (
-            f"The VGG16 ImageNet weights are not available offline. Put torchvision's {VGG16_IMAGENET_FILE} at "
-            f"{imagenet_weights_path()} (the torch hub cache), or give a local state-dict file with "
-            "`perceptual.weights=/path/to/vgg16.pth`, or set `perceptual.weights=none` for random features."
-        )
-        raise FileNotFoundError(f"VGG16 weights not found at {path}. {hint}")
-    return path
+    try:  # the same offline lookup as the cross-view VGG16 trunk (hub cache or a local file)
+        return imagenet_weights_path(None if weights == "imagenet" else weights)
+    except MissingWeightsError as err:
+        raise MissingWeightsError(f"{err} For the perceptual loss: perceptual.weights=/path/to/vgg16.pth, or "
+                                  "perceptual.weights=none for random features.") from None
 
 
 def vgg16_features(n_layers: int) -> nn.Sequential:

@@ -2,5 +2,8 @@
 
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 from geoloc.models.erfnet import ERFNet
+from geoloc.models.fcn import FCN8s
+from geoloc.models.patchgan import PatchGAN
+from geoloc.models.unet import UNet
 
-__all__ = ["CrossViewModel", "CrossViewModelConfig", "ERFNet"]
+__all__ = ["CrossViewModel", "CrossViewModelConfig", "ERFNet", "FCN8s", "PatchGAN", "UNet"]

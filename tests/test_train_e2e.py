@@ -128,3 +128,17 @@ def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
     rows = (REALDATA / "cvusa_mini/splits/val-19zl.csv").read_text().split()
     assert json.loads(out.read_text())["num_queries"] == metrics["num_queries"] == len(rows)
     assert 0.0 <= metrics["R@1"] <= metrics["R@5"] == 1.0  # fewer than 5 references: always in the top 5
+
+
+def test_a_collapsed_network_scores_zero_not_one_hundred():
+    from geoloc.models.crossview import CrossViewModelConfig
+    from geoloc.tasks.crossview import OptimConfig, TripletLossConfig
+
+    task = CrossViewTask(CrossViewModelConfig(width=0.0625, pretrained=False, dim=8), TripletLossConfig(),
+                         OptimConfig())
+    same = torch.nn.functional.normalize(torch.ones(6, 8), dim=1)
+    with pytest.warns(UserWarning, match="collapsed"):
+        metrics = task.validation_epoch_end({"query": same, "reference": same.clone()})
+    assert metrics["R@1"] == 0.0  # ties alone would have given 100%
+    with pytest.raises(FloatingPointError, match="NaN"):
+        task.validation_epoch_end({"query": same * float("nan"), "reference": same})

@@ -57,9 +57,8 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     data_cfg = checked(data_section, data.CrossViewDataConfig, "dataset")
     task = build_task(stored)
     load_task_state(task, state, cfg.ckpt)
-    device = dist.init_from_env(cfg.get("device", "auto"))
     dataset = data.build(data_cfg, data_cfg.split, train=False)
-    trainer = Trainer(TrainerConfig(device=str(device.type), num_workers=cfg.get("num_workers", 0),
+    trainer = Trainer(TrainerConfig(device=cfg.get("device", "auto"), num_workers=cfg.get("num_workers", 0),
                                     progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
     task.to(trainer.device)
     batch_size = data_cfg.val_batch_size or data_cfg.batch_size
@@ -83,12 +82,12 @@ def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConf
     """The stored dataset config, overlaid with what the user asked for at evaluation (name, root, split...),
     except the transform keys, which must stay as trained."""
     section = OmegaConf.to_container(stored, resolve=True)
-    for key, value in (OmegaConf.to_container(requested, resolve=True) if requested else {}).items():
+    overlay = OmegaConf.to_container(requested, resolve=True) if requested else {}
+    if overlay.get("name") not in (None, section.get("name")):
+        section["root"] = None  # another dataset never inherits the trained one's root; its schema then asks for one
+    for key, value in overlay.items():
         if value is not None and key not in TRANSFORM_KEYS:
             section[key] = value
-    if requested and requested.get("name") and requested.get("name") != stored.get("name") and not requested.get(
-            "root") and requested.get("name") != "synthetic":
-        raise ConfigError(f"dataset={requested.name} needs dataset.root=/path/to/{requested.name.upper()}")
     return OmegaConf.create(section)
 
 

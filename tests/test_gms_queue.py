@@ -186,3 +186,33 @@ def test_push_gathers_over_ranks(tmp_path):
     for state in states:  # every rank holds the same queue, in rank order
         assert state["ids"].tolist() == [10, 11, 20, -1, -1] and int(state["ptr"]) == 3
     torch.testing.assert_close(states[0]["descriptors"], states[1]["descriptors"])
+
+
+def test_queue_start_epoch_keeps_the_queue_out_until_then():
+    """loss.queue_start_epoch: before it, no push and the loss is the plain in-batch one; from it on, both."""
+    from types import SimpleNamespace
+
+    from geoloc.models.crossview import CrossViewModelConfig
+    from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
+
+    torch.manual_seed(0)
+    model = CrossViewModelConfig(width=0.0625, pretrained=False, dim=8, scale_channels=2, proj_channels=2, pool=1)
+    task = CrossViewTask(model, TripletLossConfig(queue_size=6, queue_start_epoch=2), OptimConfig())
+    task.eval()  # fixed BN statistics: the same batch gives the same descriptors
+    batch = {"query": torch.randn(3, 3, 32, 32), "reference": torch.randn(3, 3, 32, 32), "index": torch.arange(3)}
+    plain = CrossViewTask(model, TripletLossConfig(queue_size=0), OptimConfig())
+    plain.model.load_state_dict(task.model.state_dict())
+    plain.eval()
+    expected = plain.training_step(batch, SimpleNamespace(epoch=0))["loss"]
+
+    for epoch in (0, 1):
+        out = task.training_step(batch, SimpleNamespace(epoch=epoch))
+        task.on_train_batch_end(out)
+        assert "push" not in out and len(task.queue) == 0
+        torch.testing.assert_close(out["loss"], expected)
+    first = task.training_step(batch, SimpleNamespace(epoch=2))
+    task.on_train_batch_end(first)
+    assert len(task.queue) == 3  # one hardest negative per query
+    torch.testing.assert_close(first["loss"], expected)  # the queue was still empty for this step's loss
+    second = task.training_step(batch, SimpleNamespace(epoch=2))
+    assert not torch.allclose(second["loss"], expected)  # now its entries are extra negatives

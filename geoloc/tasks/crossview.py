@@ -23,12 +23,15 @@ class TripletLossConfig:
     name: str = "gms_triplet"
     alpha: float = 10.0  # soft-margin scale (CVM-Net / SAFA)
     queue_size: int = 1024  # GMS global hard-negative queue length; 0 = "w/o GMS"
+    queue_start_epoch: int = 0  # the queue is filled and used from this epoch on (warm-up against feature drift)
 
     def __post_init__(self):
         if self.alpha <= 0:
             raise ValueError(f"loss.alpha must be > 0, got {self.alpha}")
         if self.queue_size < 0:
             raise ValueError(f"loss.queue_size must be >= 0, got {self.queue_size}")
+        if self.queue_start_epoch < 0:
+            raise ValueError(f"loss.queue_start_epoch must be >= 0, got {self.queue_start_epoch}")
 
 
 @dataclass
@@ -69,13 +72,18 @@ class CrossViewTask(Task):
         query_all = dist.all_gather_with_grad(query)
         reference_all = dist.all_gather_with_grad(reference)
         ids_all = dist.all_gather_nograd(batch["index"])
+        # The queue holds descriptors of earlier steps. While the network still moves fast they are stale, and as
+        # their terms outnumber the in-batch ones (B x queue_size vs 2B(B-1)) they can swamp the loss: the network
+        # then drifts away from old entries instead of learning places (seen on the synthetic default, where
+        # R@1 stayed at chance). Hence the warm-up, as in cross-batch memory (Wang et al., CVPR 2020).
+        use_queue = self.loss_cfg.queue_size > 0 and engine.epoch >= self.loss_cfg.queue_start_epoch
         extra, mask = (None, None)
-        if self.loss_cfg.queue_size > 0:
+        if use_queue:
             extra, mask = self.queue.negatives(ids_all)
         loss = soft_margin_triplet(query_all, reference_all, alpha=self.loss_cfg.alpha,
                                    extra_negatives=extra, extra_mask=mask)
         out = {"loss": loss}
-        if self.loss_cfg.queue_size > 0:
+        if use_queue:
             # this rank's queries' hardest in-batch negatives; push() gathers them over ranks (after the loss)
             hard, hard_ids = self.queue.hardest_negatives(query_all.detach(), reference_all.detach(), ids_all)
             lo = dist.rank() * query.shape[0]

@@ -73,9 +73,10 @@ class CrossViewTask(Task):
         reference_all = dist.all_gather_with_grad(reference)
         ids_all = dist.all_gather_nograd(batch["index"])
         # The queue holds descriptors of earlier steps. While the network still moves fast they are stale, and as
-        # their terms outnumber the in-batch ones (B x queue_size vs 2B(B-1)) they can swamp the loss: the network
-        # then drifts away from old entries instead of learning places (seen on the synthetic default, where
-        # R@1 stayed at chance). Hence the warm-up, as in cross-batch memory (Wang et al., CVPR 2020).
+        # their terms outnumber the in-batch ones (B x queue_size vs 2B(B-1)) they can swamp the loss: moving every
+        # descriptor away from the old entries, down to a collapse onto one point, pays more than learning places
+        # (seen on the synthetic default, R@1 near chance). Hence the warm-up, as in cross-batch memory (Wang et
+        # al., CVPR 2020), which starts its memory once the embedding drifts slowly.
         use_queue = self.loss_cfg.queue_size > 0 and engine.epoch >= self.loss_cfg.queue_start_epoch
         extra, mask = (None, None)
         if use_queue:

@@ -1,11 +1,14 @@
 """GMSQueue: FIFO order, masking, hardest negatives, checkpoint round trip, size 0 (DESIGN.md: GMS queue)."""
 import io
+from types import SimpleNamespace
 
 import pytest
 import torch
 import torch.nn.functional as F
 
 from geoloc.losses import GMSQueue, soft_margin_triplet
+from geoloc.models.crossview import CrossViewModelConfig
+from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
 
 
 def entries(ids, dim=3):
@@ -190,11 +193,6 @@ def test_push_gathers_over_ranks(tmp_path):
 
 def test_queue_start_epoch_keeps_the_queue_out_until_then():
     """loss.queue_start_epoch: before it, no push and the loss is the plain in-batch one; from it on, both."""
-    from types import SimpleNamespace
-
-    from geoloc.models.crossview import CrossViewModelConfig
-    from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
-
     torch.manual_seed(0)
     model = CrossViewModelConfig(width=0.0625, pretrained=False, dim=8, scale_channels=2, proj_channels=2, pool=1)
     task = CrossViewTask(model, TripletLossConfig(queue_size=6, queue_start_epoch=2), OptimConfig())

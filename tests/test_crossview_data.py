@@ -118,3 +118,38 @@ def test_joint_flip_rotate_keeps_the_pair_geometrically_true(turns, flip):
     # the flip/rotation (S/2 lies between pixels)
     wrong = np.abs(np.roll(new_street, 128 // 4, axis=1).astype(int) - expected).mean()
     assert error < 8 and error < 0.3 * wrong
+
+
+def test_augment_seed_changes_the_augmentation(tiny_cvusa):
+    c = cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3)
+    seed0, seed1 = (crossview.build(c, "train", train=True, augment_seed=s) for s in (0, 1))
+    assert not torch.equal(seed0[(2, 5)]["query"], seed1[(2, 5)]["query"])
+
+
+def test_the_runs_seed_reaches_init_sampling_and_augmentation(tiny_cvusa, tmp_path, monkeypatch):
+    """`seed=7` (not dataset.seed, which picks the synthetic world) seeds what a seed sweep must vary."""
+    from conftest import TINY, compose_train
+
+    from geoloc.tasks import crossview_run
+
+    seen = {}
+    real_build = crossview.build
+
+    def spy_build(data_cfg, split, train, augment_seed=0):
+        seen[split] = augment_seed
+        return real_build(data_cfg, split, train, augment_seed)
+
+    def no_fit(trainer, task, *args, **kwargs):
+        seen["trainer_seed"] = trainer.cfg.seed
+        seen["first_weight"] = next(task.parameters()).detach().clone()
+        return {}
+
+    monkeypatch.setattr(crossview_run.data, "build", spy_build)
+    monkeypatch.setattr(crossview_run.Trainer, "fit", no_fit)
+    weights = []
+    for seed in (7, 8):
+        cfg_ = compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={tmp_path / str(seed)}", f"seed={seed}"])
+        crossview_run.train(cfg_, tmp_path / str(seed))
+        assert seen["train"] == seed and seen["trainer_seed"] == seed
+        weights.append(seen["first_weight"])
+    assert not torch.equal(*weights)  # initialisation follows the seed too

@@ -45,7 +45,7 @@ class CrossViewDataConfig:
     preset: str = "small"
     train_size: int = 1200
     val_size: int = 300
-    seed: int = 0
+    seed: int = 0  # the synthetic world (which places are rendered); the run's `seed` drives augmentation
     workers: int = 2
 
     def __post_init__(self):
@@ -95,10 +95,14 @@ def default_cache() -> Path:
 
 class CrossViewPairs(Dataset):
     """Item: {"query": 3×Hq×Wq float (street, aligned), "reference": 3×Hr×Wr float (aerial),
-    "index": position in the split (= place id)}. Keys may be ints or (index, epoch) pairs."""
+    "index": position in the split (= place id)}. Keys may be ints or (index, epoch) pairs.
 
-    def __init__(self, pairs: list[tuple[Path, Path]], cfg: CrossViewDataConfig, train: bool, cvact: bool = False):
+    `augment_seed` (the run's top-level `seed`) seeds the train-time augmentation per (seed, epoch, index)."""
+
+    def __init__(self, pairs: list[tuple[Path, Path]], cfg: CrossViewDataConfig, train: bool, cvact: bool = False,
+                 augment_seed: int = 0):
         self.pairs, self.cfg, self.train, self.cvact = pairs, cfg, train, cvact
+        self.augment_seed = augment_seed
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -113,7 +117,7 @@ class CrossViewPairs(Dataset):
     def __getitem__(self, key) -> dict:
         index, _ = split_key(key)
         street, aerial = self.load(index)
-        rng = item_rng(self.cfg.seed, key) if self.train else None
+        rng = item_rng(self.augment_seed, key) if self.train else None
         query, reference = align(street, aerial, self.cfg, rng)
         return {"query": to_tensor(query, rng, self.cfg.color_jitter),
                 "reference": to_tensor(reference, rng, self.cfg.color_jitter), "index": index}
@@ -174,5 +178,7 @@ def to_tensor(img: np.ndarray, rng: np.random.Generator | None = None, jitter: f
     return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1), dtype=np.float32))
 
 
-def build(cfg: CrossViewDataConfig, split: str, train: bool) -> CrossViewPairs:
-    return CrossViewPairs(split_pairs(cfg, split), cfg, train=train, cvact=cfg.name == "cvact")
+def build(cfg: CrossViewDataConfig, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
+    """`augment_seed`: the run's `seed` (trainer.seed), so a seed sweep varies the augmentation too."""
+    return CrossViewPairs(split_pairs(cfg, split), cfg, train=train, cvact=cfg.name == "cvact",
+                          augment_seed=augment_seed)

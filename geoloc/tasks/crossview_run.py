@@ -33,7 +33,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
     seed_everything(trainer_cfg.seed)
     task = build_task(cfg)  # fails on a bad model/loss/optim config before any data is generated
-    train_set = data.build(data_cfg, "train", train=True)
+    train_set = data.build(data_cfg, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = data.build(data_cfg, "val", train=False)
     trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))
     best = trainer.fit(task, train_set, val_set, batch_size=data_cfg.batch_size,

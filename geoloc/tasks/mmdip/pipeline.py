@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from geoloc.config import ConfigError, checked, to_yaml
 from geoloc.data.dynamic import (NUM_CLASSES, CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset,
                                  load_class_fractions)
-from geoloc.engine import Trainer, TrainerConfig
+from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.eval.image import image_scores_per_image
@@ -43,12 +43,13 @@ def dataset_root(cfg: DynamicDataConfig) -> Path:
                                seed=cfg.seed, workers=cfg.workers, view_size=cfg.view_size))
 
 
-def build_split(cfg: DynamicDataConfig, root: Path, split: str, train: bool):
+def build_split(cfg: DynamicDataConfig, root: Path, split: str, train: bool, augment_seed: int = 0):
+    """`augment_seed` is the run's `seed`; `dataset.seed` only picks the synthetic world."""
     if cfg.name == "dynamic":
-        return DynamicDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=cfg.seed,
+        return DynamicDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=augment_seed,
                               check=cfg.check_files)
     if cfg.name == "carla4":
-        return CarlaFourPanelDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=cfg.seed)
+        return CarlaFourPanelDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=augment_seed)
     return EmptyCitiesDataset(root, split, cfg.image_size)
 
 
@@ -74,6 +75,7 @@ def phase_trainer(trainer_cfg: TrainerConfig, epochs: int, run_dir: Path, yaml: 
 
 
 def run_phase1(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir: Path, yaml: str):
+    seed_everything(trainer_cfg.seed)  # each phase's initialisation follows the run's `seed`
     task = SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, fractions)
     trainer = phase_trainer(trainer_cfg, task_cfg.segmentation.epochs, run_dir, yaml)
     best = trainer.fit(task, train_set, val_set, batch_size=task_cfg.segmentation.batch_size,
@@ -83,6 +85,7 @@ def run_phase1(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, r
 
 def run_phase2(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir: Path, yaml: str,
                phase1_ckpt: Path | None):
+    seed_everything(trainer_cfg.seed)
     task = JointTask(task_cfg, fractions)
     if phase1_ckpt is not None and task_cfg.translation.init_from_phase1:
         state = ckpt_io.load(phase1_ckpt)["task"]
@@ -103,7 +106,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     yaml = to_yaml(cfg)
     root = dataset_root(data_cfg)
     fractions = load_class_fractions(root)
-    train_set = build_split(data_cfg, root, "train", train=True)
+    train_set = build_split(data_cfg, root, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = build_split(data_cfg, root, "val", train=False)
 
     _, best1 = run_phase1(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir / "phase1", yaml)

@@ -6,7 +6,9 @@ Two backends:
 - ``faiss`` (the optional ``faiss-cpu`` extra): ``flat`` (exact, ``IndexFlatIP``) or ``ivfpq`` (inverted lists +
   product quantisation, ``IndexIVFPQ``) for galleries of millions.
 
-Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b.
+Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b. What is added,
+trained on or searched goes through `geoloc.eval.descriptors.unit_rows`, as in `recall_at_k`: rows off unit length
+are normalised (cosine), NaN/inf rows raise FloatingPointError, all-zero rows ValueError, on both backends.
 """
 from __future__ import annotations
 
@@ -15,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from geoloc.eval.descriptors import unit_rows
 
 __all__ = ["GalleryIndex", "import_faiss", "as_float_tensor"]
 
@@ -106,20 +110,20 @@ class GalleryIndex:
         x = as_float_tensor(x, name)
         if x.shape[1] != self.dim:
             raise ValueError(f"{name} must have dimension {self.dim}, got {x.shape[1]}")
-        return x
+        return unit_rows(x, name)
 
     def train(self, descriptors, max_points: int = 200_000, seed: int = 0) -> None:
         """Train the IVF-PQ quantisers on (a seeded sample of at most ``max_points`` of) the descriptors."""
         if self.backend != "faiss" or self.kind != "ivfpq":
             return
-        x = self._check(descriptors, "descriptors")
+        x = self._check(descriptors, "reference")
         if x.shape[0] > max_points:
             x = x[torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:max_points]]
         self._index.train(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
 
     def add(self, descriptors) -> "GalleryIndex":
         """Append N x dim descriptors; their row numbers continue from ``len(self)``. Trains IVF-PQ if needed."""
-        x = self._check(descriptors, "descriptors")
+        x = self._check(descriptors, "reference")
         if self.backend == "faiss":
             if not self._index.is_trained:
                 self.train(x)
@@ -138,11 +142,11 @@ class GalleryIndex:
 
         k is capped at ``len(self)``.
         """
-        q = self._check(query, "query")
         if len(self) == 0:
             raise ValueError("search on an empty gallery: add descriptors first")
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
+        q = self._check(query, "query")
         k = min(int(k), len(self))
         if self.backend == "faiss":
             scores, idx = self._index.search(np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32), k)

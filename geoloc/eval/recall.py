@@ -1,7 +1,9 @@
 """Recall@K for retrieval with one true match per query (the cross-view protocol of SAFA, TransGeo, Sample4Geo).
 
 Convention (repos disagree; this is the one DESIGN.md fixes):
-- descriptors are L2-normalised and compared by d = 2 - 2 a.b, i.e. ranked by inner product;
+- descriptors are L2-normalised and compared by d = 2 - 2 a.b, i.e. ranked by inner product. Rows that are not
+  unit length are L2-normalised first (cosine ranking); non-finite or all-zero rows raise
+  (geoloc.eval.descriptors), on every backend;
 - query i's true match is reference i;
 - rank(i) = the number of references strictly closer to query i than its true match, so a tie counts in the
   query's favour; R@K = mean(rank < K);
@@ -14,6 +16,7 @@ from typing import Iterable
 
 import torch
 
+from geoloc.eval.descriptors import unit_rows
 from geoloc.eval.gallery import GalleryIndex, _chunk_rows, as_float_tensor
 
 __all__ = ["recall_at_k", "retrieval_ranks", "one_percent_k"]
@@ -34,7 +37,14 @@ def _check_pair(query, reference) -> tuple[torch.Tensor, torch.Tensor]:
         raise ValueError(f"reference[i] must match query[i]: got {q.shape[0]} queries and only {r.shape[0]} "
                          "references")
     dtype = torch.promote_types(q.dtype, r.dtype)
-    return q.to(r.device, dtype), r.to(dtype)
+    return unit_rows(q.to(r.device, dtype), "query"), unit_rows(r.to(dtype), "reference")
+
+
+def _check_chunk(chunk_size: int | None) -> int:
+    chunk = int(chunk_size or 1024)
+    if chunk < 1:
+        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+    return chunk
 
 
 def retrieval_ranks(query, reference, chunk_size: int | None = None) -> torch.Tensor:
@@ -43,10 +53,8 @@ def retrieval_ranks(query, reference, chunk_size: int | None = None) -> torch.Te
     Exact and chunked: at most ``chunk_size`` queries (default 1024) times a block of references sized to
     ~2^25 scores are in memory at once, never a Q x N matrix. Runs where ``reference`` lives (GPU if there).
     """
+    chunk = _check_chunk(chunk_size)  # argument errors first, then the descriptors
     q, r = _check_pair(query, reference)
-    chunk = int(chunk_size or 1024)
-    if chunk < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
     step = _chunk_rows(chunk)
     ranks = torch.empty(q.shape[0], dtype=torch.long)
     for q0 in range(0, q.shape[0], chunk):
@@ -88,8 +96,11 @@ def recall_at_k(query, reference, ks: Iterable[int] = (1, 5, 10), backend: str =
     """R@K for each K in ``ks`` and R@1%, as Python floats in [0, 1].
 
     Args:
-        query: Q x D descriptors (torch tensor or numpy array), L2-normalised.
+        query: Q x D descriptors (torch tensor or numpy array). Rows off unit length by more than 1e-3 are
+            L2-normalised (cosine); unit rows are used as given. NaN/inf rows raise FloatingPointError, all-zero
+            rows ValueError.
         reference: N x D descriptors, N >= Q; reference[i] is query i's true match (extra rows are distractors).
+            Same rules as ``query``.
         ks: the K values; the keys are ``"R@{K}"``, plus ``"R@1%"`` with K = max(1, floor(N / 100)).
         backend: ``"torch"`` (exact, chunked) or ``"faiss"`` (flat inner-product index, same numbers; needs the
             ``faiss-cpu`` extra).
@@ -104,14 +115,15 @@ def recall_at_k(query, reference, ks: Iterable[int] = (1, 5, 10), backend: str =
         ks = ()
     if not ks or min(ks) < 1:
         raise ValueError("ks must be a non-empty sequence of positive ints")
+    if backend not in ("torch", "faiss"):
+        raise ValueError(f"backend must be 'torch' or 'faiss', got {backend!r}")
+    _check_chunk(chunk_size)
     q, r = _check_pair(query, reference)
     k_pct = one_percent_k(r.shape[0])
     if backend == "torch":
         ranks = retrieval_ranks(q, r, chunk_size)
-    elif backend == "faiss":
-        ranks = _ranks_faiss(q, r, max(max(ks), k_pct))
     else:
-        raise ValueError(f"backend must be 'torch' or 'faiss', got {backend!r}")
+        ranks = _ranks_faiss(q, r, max(max(ks), k_pct))
     out = {f"R@{k}": float((ranks < k).double().mean()) for k in ks}
     out["R@1%"] = float((ranks < k_pct).double().mean())
     return out

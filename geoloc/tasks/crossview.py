@@ -6,7 +6,6 @@ Paper settings: Adam lr 1e-4 (betas 0.9/0.999), StepLR /10 every 80 epochs, 100 
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -14,6 +13,7 @@ import torch
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
 from geoloc.eval import recall_at_k
+from geoloc.eval.descriptors import check_descriptors, guarded_recall
 from geoloc.losses import GMSQueue, soft_margin_triplet
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
@@ -101,15 +101,7 @@ class CrossViewTask(Task):
 
     def validation_epoch_end(self, outputs):
         query, reference = outputs["query"], outputs["reference"]
-        if not (torch.isfinite(query).all() and torch.isfinite(reference).all()):
-            raise FloatingPointError("validation descriptors hold NaN/inf: the network diverged. Lower optim.lr, "
-                                     "set trainer.grad_clip, or resume from an earlier last.pt.")
-        metrics = recall_at_k(query, reference)
-        # Ties count in the query's favour (rank = items *strictly* closer), so a collapsed network that maps every
-        # image to one descriptor would score R@1 = 100%. Report the spread so such a run cannot pass unnoticed.
-        spread = float(reference.float().std(dim=0).sum())
-        metrics["reference_spread"] = spread
-        if spread < 1e-4:
-            warnings.warn(f"reference descriptors have collapsed (spread {spread:.2e}); recall is meaningless here")
-            metrics = {k: (0.0 if k.startswith("R@") else v) for k, v in metrics.items()}
-        return metrics
+        # Non-finite descriptors raise; a collapse (ties count in the query's favour, so one shared descriptor would
+        # score R@1 = 100%) reports recall 0. The same checks guard the saved-gallery path (crossview_gallery).
+        spread = check_descriptors(query, reference)
+        return guarded_recall(lambda: recall_at_k(query, reference), spread)

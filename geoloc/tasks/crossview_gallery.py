@@ -3,14 +3,17 @@
     python evaluate.py ckpt=.../best.pt gallery.save=DIR [gallery.backend=faiss gallery.kind=ivfpq]
     python evaluate.py ckpt=.../best.pt gallery.load=DIR      # only the query branch runs
 
-DIR holds `gallery.pt` (GalleryIndex.save) and `gallery.json` (what it was built from). Query i's true match is
-row i of the gallery, so the queries must come from the split the gallery was built on. With `kind=flat` the
-recall equals the exact evaluation.
+DIR holds `gallery.pt` (GalleryIndex.save) and `gallery.json` (what it was built from, and the reference spread).
+Query i's true match is row i of the gallery, so the queries must come from the split the gallery was built on.
+With `kind=flat` the recall equals the exact evaluation. Both ways run the checks of the validation path
+(geoloc.eval.descriptors): NaN/inf descriptors raise before anything is saved, and a collapsed gallery reports
+recall 0 with a warning (the spread of a saved gallery is measured when it is built; a collapsed one is not saved).
 """
 
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +22,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.engine import Trainer
 from geoloc.engine import distributed as dist
+from geoloc.eval.descriptors import check_descriptors, guarded_recall
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.eval.recall import one_percent_k
 
@@ -99,16 +103,34 @@ def evaluate(task, trainer: Trainer, dataset, batch_size: int, cfg: GalleryConfi
                 f"the gallery in {folder} has {saved['num_references']} references of dim {saved['dim']} (built "
                 f"from {saved.get('dataset')}), but this split has {len(dataset)} queries and the model dim "
                 f"{task.model_cfg.dim}: evaluate the split and checkpoint it was built from")
+        if "reference_spread" not in saved:
+            raise ConfigError(f"the gallery in {folder} was built by an older geoloc that did not check its "
+                              "descriptors (no reference_spread in gallery.json): rebuild it with "
+                              f"gallery.save={folder}")
+        spread = saved["reference_spread"]
         index = GalleryIndex.load(folder / "gallery.pt", device=trainer.device)
         query = encode(task, trainer, dataset, batch_size, keys=("query",))["query"]
-    else:
-        desc = encode(task, trainer, dataset, batch_size)
-        query, index = desc["query"], build_index(desc["reference"], cfg)
+        check_descriptors(query)
+        return {**guarded_recall(lambda: recall_from_index(index, query), spread), "num_references": len(index)}
+    desc = encode(task, trainer, dataset, batch_size)
+    query, reference = desc["query"], desc["reference"]
+    spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
+
+    built = []
+
+    def build_and_score() -> dict:  # not called on a collapse: such a gallery is not worth saving
+        index = build_index(reference, cfg)
+        built.append(index)
         if cfg.save and dist.is_main():
             folder = Path(cfg.save)
             folder.mkdir(parents=True, exist_ok=True)
             index.save(folder / "gallery.pt")
             info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
-                    **index.params, **meta}
+                    **index.params, "reference_spread": spread, **meta}
             (folder / "gallery.json").write_text(json.dumps(info, indent=2) + "\n")
-    return {**recall_from_index(index, query), "num_references": len(index)}
+        return recall_from_index(index, query)
+
+    metrics = guarded_recall(build_and_score, spread)
+    if cfg.save and not built:
+        warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
+    return {**metrics, "num_references": len(reference)}

@@ -31,6 +31,17 @@ def write_cvusa(root: Path, n_train: int, n_val: int, aerial: int = 64, pano=(32
     return root
 
 
+@pytest.fixture(scope="session", autouse=True)
+def checked_files_cache(tmp_path_factory):
+    """The start-up checks remember passed files in a session folder, not in the user's ~/.cache/geoloc."""
+    from geoloc.data import validate
+
+    folder = tmp_path_factory.mktemp("checked")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(validate, "checked_dir", lambda: folder)
+        yield folder
+
+
 @pytest.fixture
 def tiny_cvusa(tmp_path) -> Path:
     return write_cvusa(tmp_path / "cvusa", n_train=12, n_val=8)

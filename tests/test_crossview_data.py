@@ -51,7 +51,7 @@ def test_missing_and_broken_files_are_counted_and_named(tiny_cvusa):
         crossview.build(cfg(tiny_cvusa), "val", train=False)
     text = str(err.value)
     assert "2 of 16 files of split 'val'" in text and str(tiny_cvusa) in text
-    assert "0000014.jpg (missing)" in text and "0000015.jpg (does not decode)" in text
+    assert "0000014.jpg (missing)" in text and "0000015.jpg (not an image: does not decode" in text
 
 
 def test_missing_split_file_names_the_root(tmp_path):

@@ -17,7 +17,7 @@ from torch.utils.data import Dataset
 
 from geoloc.data import polar
 from geoloc.data.splits import cvact_pairs, cvusa_pairs
-from geoloc.data.validate import check_files
+from geoloc.data.validate import check_files, require_complete
 from geoloc.engine.sampling import item_rng, split_key
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
@@ -62,6 +62,7 @@ class CrossViewDataConfig:
 
 
 def read_rgb(path: Path) -> np.ndarray:
+    require_complete(path)  # a truncated JPEG would decode with a grey fill and only a libjpeg warning
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise OSError(f"cannot decode image {path}")

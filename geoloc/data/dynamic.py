@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from geoloc.data.validate import check_files
+from geoloc.data.validate import check_files, require_complete
 from geoloc.engine.sampling import item_rng, split_key
 
 log = logging.getLogger(__name__)
@@ -38,6 +38,7 @@ class DataFormatError(ValueError):
 
 
 def read_rgb(path: Path) -> np.ndarray:
+    require_complete(path)  # a truncated JPEG would decode with a grey fill and only a libjpeg warning
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DataFormatError(f"{path}: missing or does not decode")

@@ -2,32 +2,24 @@
 
     python data_prep/class_fractions.py --root DIR [--split train] [--format dynamic|carla4] [--force]
 
-Writes DIR/class_fractions.json as {"classes": [8 names], "fractions": [8 floats]}, the file the synthetic
-generator writes itself. `dynamic` reads label_static/ of the split's rows; `carla4` reads the static seg panel
-of the authors' 4-panel PNGs (CARLA tags mapped to the 8 classes).
+Writes DIR/class_fractions.json: {"classes": [8 names], "fractions": [8 floats], "pixels": [8 counts], "source":
+{format, split, class map, file count, fingerprint of the label files}}. Training does the same by itself at
+start-up whenever the file is missing or no longer matches the label files (geoloc.data.label_census), so this
+tool is only needed to prepare a read-only copy of a dataset, or to look at the numbers. `dynamic` reads
+label_static/ of the split's rows; `carla4` reads the static seg panel of the authors' 4-panel PNGs (CARLA tags
+mapped to the 8 classes). Without --force an up-to-date file is kept.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from geoloc.data.dynamic import (STATIC_CLASSES, CarlaFourPanelDataset, DynamicDataset,  # noqa: E402
-                                 class_fractions, read_label)
-
-
-def compute(root: Path, split: str, fmt: str) -> list[float]:
-    if fmt == "dynamic":
-        ds = DynamicDataset(root, split, check="off")
-        labels = (read_label(ds._path("label_static", s)) for s in ds.samples)
-    else:
-        ds = CarlaFourPanelDataset(root, split)
-        labels = (ds[i]["label"].numpy() for i in range(len(ds)))
-    return class_fractions(labels)
+from geoloc.data.dynamic import STATIC_CLASSES, load_class_fractions  # noqa: E402
+from geoloc.data.label_census import FILE_NAME  # noqa: E402
 
 
 def main(argv=None) -> Path:
@@ -35,14 +27,11 @@ def main(argv=None) -> Path:
     p.add_argument("--root", type=Path, required=True)
     p.add_argument("--split", default="train")
     p.add_argument("--format", choices=("dynamic", "carla4"), default="dynamic")
-    p.add_argument("--force", action="store_true", help="overwrite an existing class_fractions.json")
+    p.add_argument("--force", action="store_true", help="recount even when the stored file is up to date")
     args = p.parse_args(argv)
-    out = args.root / "class_fractions.json"
-    if out.exists() and not args.force:
-        raise SystemExit(f"{out} exists; pass --force to recompute it")
-    fractions = compute(args.root, args.split, args.format)
-    out.write_text(json.dumps({"classes": list(STATIC_CLASSES), "fractions": fractions}, indent=1))
-    print(f"wrote {out}: " + ", ".join(f"{c} {f:.4f}" for c, f in zip(STATIC_CLASSES, fractions)))
+    fractions = load_class_fractions(args.root, args.format, args.split, force=args.force)
+    out = args.root / FILE_NAME
+    print(f"{out}: " + ", ".join(f"{c} {f:.4f}" for c, f in zip(STATIC_CLASSES, fractions)))
     return out
 
 

@@ -10,6 +10,7 @@ import torch
 
 from geoloc.data.dynamic import (CarlaFourPanelDataset, DataFormatError, DynamicDataset, EmptyCitiesDataset,
                                  load_class_fractions)
+from geoloc.data.validate import DatasetFileError
 
 REPO = Path(__file__).resolve().parents[1]
 PALETTE = np.array([(0, 0, 0), (70, 70, 70), (190, 153, 153), (220, 220, 0), (157, 234, 50), (128, 64, 128),
@@ -102,7 +103,9 @@ def test_dynamic_reader_refuses_bad_files(tmp_path):
     root = write_tiny_dynamic(tmp_path / "dyn")
     cv2.imwrite(str(root / "label_static/0000002.png"), np.full((64, 64), 9, np.uint8))
     cv2.imwrite(str(root / "rgb_static/0000003.png"), np.zeros((64, 64), np.uint8))
-    ds = DynamicDataset(root, "train")
+    with pytest.raises(DatasetFileError, match=r"0000002.png \(label values \[9\] lie outside the class set 0..7"):
+        DynamicDataset(root, "train")  # at start-up, not at the first validation
+    ds = DynamicDataset(root, "train", check="off")
     with pytest.raises(DataFormatError, match=r"0000002.png: label values \[9\] lie outside"):
         ds[2]
     with pytest.raises(DataFormatError, match="0000003.png: expected a 3-channel RGB image, got 1"):
@@ -171,10 +174,14 @@ def test_empty_cities_three_panel_reader(tmp_path):
 
 def test_class_fractions_tool(tmp_path):
     root = write_tiny_dynamic(tmp_path / "dyn")
-    stored = load_class_fractions(root)
-    (root / "class_fractions.json").unlink()
-    with pytest.raises(FileNotFoundError, match="data_prep/class_fractions.py"):
-        load_class_fractions(root)
+    path = root / "class_fractions.json"
+    exact = json.loads(path.read_text())["fractions"]
+    path.unlink()
     subprocess.run([sys.executable, str(REPO / "data_prep/class_fractions.py"), "--root", str(root)], check=True,
                    capture_output=True)
-    np.testing.assert_allclose(load_class_fractions(root), stored, atol=1e-12)
+    stored = json.loads(path.read_text())
+    np.testing.assert_allclose(stored["fractions"], exact, atol=5e-7)  # stored to 6 decimals
+    assert stored["source"]["format"] == "dynamic" and stored["source"]["files"] == 8
+    before = path.stat().st_mtime_ns
+    assert load_class_fractions(root) == stored["fractions"]
+    assert path.stat().st_mtime_ns == before  # up to date: read, not recounted

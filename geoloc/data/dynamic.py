@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import warnings
 from pathlib import Path
 
 import cv2
@@ -19,7 +20,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from geoloc.data.validate import check_files, require_complete
+from geoloc.data import label_census
+from geoloc.data.validate import check_files, require_complete, run_checks
 from geoloc.engine.sampling import item_rng, split_key
 
 log = logging.getLogger(__name__)
@@ -56,6 +58,14 @@ def read_label(path: Path, num_classes: int = NUM_CLASSES) -> np.ndarray:
         raise DataFormatError(f"{path}: expected a single-channel label image, got shape {lab.shape}")
     check_label_values(lab, num_classes, path)
     return lab
+
+
+def _label_problem(path: Path) -> str | None:
+    try:
+        read_label(path)
+    except DataFormatError as err:
+        return str(err).removeprefix(f"{path}: ")
+    return None
 
 
 def check_label_values(lab: np.ndarray, num_classes: int, path) -> None:
@@ -128,6 +138,9 @@ class DynamicDataset(Dataset):
         self.resize = _Resizer(image_size, f"dynamic/{split}")
         check_files([self._path(d, s) for s in self.samples for d in ("rgb_dynamic", "rgb_static", "label_static",
                                                                       "mask_dynamic")], self.root, split, check)
+        if check != "off":  # an id outside the class set fails now, naming the file, not at the first validation
+            run_checks([self._path("label_static", s) for s in self.samples], self.root, split,
+                       f"labels<{NUM_CLASSES}", _label_problem, what=f"not label maps of classes 0..{NUM_CLASSES - 1}")
 
     def _path(self, folder: str, sample: str) -> Path:
         return self.root / folder / f"{sample}.png"
@@ -229,23 +242,52 @@ class EmptyCitiesDataset(Dataset):
                        index=index)
 
 
-def class_fractions(labels, num_classes: int = NUM_CLASSES) -> list[float]:
-    """Pixel fraction of each class over an iterable of label maps (r_c of eq. 1)."""
-    counts = np.zeros(num_classes, np.int64)
-    for lab in labels:
-        counts += np.bincount(np.asarray(lab).ravel(), minlength=num_classes)[:num_classes]
-    if counts.sum() == 0:
-        raise ValueError("no labelled pixels to count")
-    return (counts / counts.sum()).tolist()
+def _label_maps(root: Path, split: str, fmt: str):
+    """(label files, read(i) -> H x W class ids, source description) of a split, for the class census."""
+    if fmt == "dynamic":
+        ds = DynamicDataset(root, split, check="off")
+        files = [ds._path("label_static", s) for s in ds.samples]
+        return files, lambda i: read_label(files[i]), {"format": fmt, "split": split, "class_map": None}
+    if fmt == "carla4":
+        ds = CarlaFourPanelDataset(root, split)
+        class_map = {str(t): c for t, c in CARLA_TO_STATIC.items()}
+        return ds.files, lambda i: ds[i]["label"].numpy(), {"format": fmt, "split": split, "class_map": class_map}
+    raise ValueError(f"class fractions are counted on 'dynamic' or 'carla4' labels, not {fmt!r}")
 
 
-def load_class_fractions(root) -> list[float]:
-    """The training split's class fractions, stored with the dataset as class_fractions.json."""
-    path = Path(root) / "class_fractions.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found; compute it once with "
-                                f"`python data_prep/class_fractions.py --root {root}`")
-    fractions = json.loads(path.read_text())["fractions"]
-    if len(fractions) != NUM_CLASSES:
-        raise DataFormatError(f"{path}: expected {NUM_CLASSES} fractions, got {len(fractions)}")
+def store_class_fractions(root, fmt: str = "dynamic", split: str = "train") -> list[float]:
+    """Count the split's class fractions now and store them with their source (the synthetic generator's last step)."""
+    files, read, source = _label_maps(Path(root), split, fmt)
+    return label_census.stored_or_counted(Path(root) / label_census.FILE_NAME, files, read, STATIC_CLASSES, source,
+                                          force=True)
+
+
+def load_class_fractions(root, fmt: str = "dynamic", split: str = "train", force: bool = False) -> list[float]:
+    """The split's class fractions r_c, from root/class_fractions.json while it matches the label files on disk.
+
+    Recounted (and stored) when the file is missing, older than the labels or made from other files
+    (geoloc.data.label_census); the count reads every label map, so an id outside the class set fails naming the
+    file. Raises DataFormatError when one class covers every pixel (nothing to segment); warns for each class
+    with no pixel at all (eq. 1 then gives it the largest weight, 1/ln(1.02) = 50.5, but phase 1 never sees it).
+    """
+    root = Path(root)
+    files, read, source = _label_maps(root, split, fmt)
+    path = root / label_census.FILE_NAME
+    try:
+        fractions = label_census.stored_or_counted(path, files, read, STATIC_CLASSES, source, force)
+    except DataFormatError:
+        raise
+    except ValueError as err:  # the census's own checks, with the file named
+        raise DataFormatError(str(err)) from err
+    present = [c for c, f in enumerate(fractions) if f > 0]
+    if len(present) == 1:
+        raise DataFormatError(
+            f"{path}: every labelled pixel of the {split} split ({len(files)} files under {root}) is class "
+            f"{present[0]} ({STATIC_CLASSES[present[0]]}), so phase 1 has nothing to learn and would score PA/MIoU "
+            f"without meaning. Are the label maps class ids 0..{NUM_CLASSES - 1} (not colours or a binary mask)?")
+    absent = [STATIC_CLASSES[c] for c, f in enumerate(fractions) if f == 0]
+    if absent:
+        warnings.warn(f"{path}: classes {absent} have no pixel in the {split} labels of {root}: eq. 1 gives them "
+                      "the largest weight (50.5), but phase 1 never learns them, and they drop out of the MIoU "
+                      "unless predicted")
     return fractions

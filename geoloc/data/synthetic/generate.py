@@ -158,4 +158,6 @@ def _finish(layout: str, root: Path, jobs, done: Path) -> None:
         for s, _, n in jobs:
             rows[s] += json.loads((done / f"{n:07d}.json").read_text())["rows"]
         LY.write_dynamic_splits(root, rows)
-        LY.write_class_fractions(root, [r.split(",", 1)[0] for r in rows["train"]])
+        from geoloc.data.dynamic import store_class_fractions  # in the format the readers check against
+
+        store_class_fractions(root, "dynamic", "train")

@@ -20,7 +20,6 @@ import cv2
 import numpy as np
 import scipy.io
 
-from .classes import STATIC_CLASSES
 
 CVUSA_SPLITS = {"train": "splits/train-19zl.csv", "val": "splits/val-19zl.csv"}
 DYNAMIC_HEADER = "sample,place,role,x,y,yaw,sun_azimuth,sun_elevation\n"
@@ -134,16 +133,3 @@ def dynamic_row(stem: str, place: int, view: dict) -> str:
 def write_dynamic_splits(root: Path, rows: dict) -> None:
     for split in ("train", "val"):
         write_bytes(root / "splits" / f"{split}.csv", (DYNAMIC_HEADER + "".join(rows[split])).encode())
-
-
-def write_class_fractions(root: Path, stems: list[str]) -> None:
-    """Static-label pixel fractions over the given (train) samples, read back from the written PNGs."""
-    import json
-
-    counts = np.zeros(len(STATIC_CLASSES), np.float64)
-    for stem in stems:
-        lab = cv2.imread(str(root / "label_static" / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
-        counts += np.bincount(lab.ravel(), minlength=len(STATIC_CLASSES))[: len(STATIC_CLASSES)]
-    frac = counts / max(counts.sum(), 1.0)
-    text = json.dumps({"classes": list(STATIC_CLASSES), "fractions": [round(float(f), 6) for f in frac]}, indent=1)
-    write_bytes(root / "class_fractions.json", (text + "\n").encode())

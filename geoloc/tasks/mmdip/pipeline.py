@@ -105,7 +105,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     run_dir = Path(run_dir)
     yaml = to_yaml(cfg)
     root = dataset_root(data_cfg)
-    fractions = load_class_fractions(root)
+    fractions = load_class_fractions(root, data_cfg.name)
     train_set = build_split(data_cfg, root, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = build_split(data_cfg, root, "val", train=False)
 

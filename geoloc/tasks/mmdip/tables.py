@@ -125,7 +125,7 @@ def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:
     yaml = to_yaml(cfg)
     (out / "config.yaml").write_text(yaml)
     root = dataset_root(data_cfg)
-    fractions = load_class_fractions(root)
+    fractions = load_class_fractions(root, data_cfg.name)
     train_set = build_split(data_cfg, root, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = build_split(data_cfg, root, "val", train=False)
     summary = {}

@@ -96,7 +96,7 @@ def test_evaluate_refuses_a_checkpoint_that_does_not_match_its_config(tiny_cvusa
 
 def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
     path = tmp_path / "last.pt"
-    ckpt_io.save_atomic({"x": torch.ones(3)}, path)
+    ckpt_io.save_atomic({"task": {"x": torch.ones(3)}}, path)
 
     def broken_save(obj, f):
         f.write(b"partial")
@@ -104,8 +104,8 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", broken_save)
     with pytest.raises(OSError):
-        ckpt_io.save_atomic({"x": torch.zeros(3)}, path)
-    assert torch.equal(ckpt_io.load(path)["x"], torch.ones(3))  # the old file is intact
+        ckpt_io.save_atomic({"task": {"x": torch.zeros(3)}}, path)
+    assert torch.equal(ckpt_io.load(path)["task"]["x"], torch.ones(3))  # the old file is intact
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]  # no temp file left behind
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 CVUSA_SPLITS = {"train": "train-19zl.csv", "val": "val-19zl.csv"}
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 CVACT_SPLITS = {"train": ("trainSet", "trainInd", "ANU_data_small"),
                 "val": ("valSet", "valInd", "ANU_data_small"),
                 "test": ("valSetAll", "valInd", "ANU_data_test")}
@@ -27,16 +28,32 @@ def cvusa_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
         raise FileNotFoundError(f"CVUSA split file {csv_path} not found. dataset.root must be the CVUSA folder "
                                 f"holding bingmap/, streetview/ and splits/ (root={root}).")
     pairs = []
-    with open(csv_path, newline="") as f:
-        for line_no, row in enumerate(csv.reader(f), start=1):
-            if not row:
-                continue
-            if len(row) < 2:
-                raise ValueError(f"{csv_path}:{line_no}: expected 'aerial,panorama,annotation', got {row}")
-            pairs.append((root / row[1].strip(), root / row[0].strip()))
+    try:
+        with open(csv_path, newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a BOM is not part of a path
+            for line_no, row in enumerate(csv.reader(f), start=1):
+                if not row:
+                    continue
+                aerial, street = _cvusa_row(row, f"{csv_path}:{line_no}")
+                pairs.append((root / street, root / aerial))
+    except (UnicodeDecodeError, csv.Error) as err:  # a binary or mangled file
+        raise ValueError(f"CVUSA split file {csv_path} is not a readable csv ({err}); restore it from the "
+                         "dataset release") from err
     if not pairs:
         raise ValueError(f"CVUSA split file {csv_path} has no rows")
     return pairs
+
+
+def _cvusa_row(row: list[str], where: str) -> tuple[str, str]:
+    """(aerial, street) relative paths of one split row; anything but two or three image paths is refused."""
+    if len(row) not in (2, 3):
+        raise ValueError(f"{where}: expected 'aerial,panorama,annotation' (2 or 3 columns), got {len(row)}: {row[:4]}")
+    aerial, street = row[0].strip(), row[1].strip()
+    for name in (aerial, street):
+        path = Path(name)
+        if path.is_absolute() or ".." in path.parts or path.suffix.lower() not in IMAGE_SUFFIXES:
+            raise ValueError(f"{where}: {name!r} is not an image path relative to dataset.root (expected e.g. "
+                             f"'bingmap/19/0000001.jpg,streetview/panos/0000001.jpg,...')")
+    return aerial, street
 
 
 def cvact_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
@@ -49,12 +66,16 @@ def cvact_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
     if not mat_path.is_file():
         raise FileNotFoundError(f"CVACT index {mat_path} not found. dataset.root must be the CVACT folder holding "
                                 f"ACT_data.mat and ANU_data_small/ (root={root}).")
-    mat = loadmat(mat_path)
+    try:
+        mat = loadmat(mat_path)
+    except Exception as err:  # scipy raises ValueError, TypeError, MatReadError, zlib errors... none naming the file
+        raise ValueError(f"CVACT index {mat_path} is not a readable MATLAB file ({type(err).__name__}: {err}); it "
+                         "is corrupt or truncated: download ACT_data.mat again") from err
     struct, field, folder = CVACT_SPLITS[split]
     try:
         ids = [str(np.asarray(p).ravel()[0]) for p in np.asarray(mat["panoIds"]).ravel()]
         index = np.asarray(mat[struct][field][0][0]).ravel().astype(np.int64) - 1  # MATLAB is 1-based
-    except (KeyError, IndexError, ValueError) as err:
+    except (KeyError, IndexError, ValueError, TypeError) as err:
         raise ValueError(f"{mat_path} lacks panoIds or {struct}.{field} in the CVACT structure: {err}") from err
     if index.size and (index.min() < 0 or index.max() >= len(ids)):
         raise ValueError(f"{mat_path}: {struct}.{field} holds indices outside 1..{len(ids)} (1-based expected)")

@@ -30,13 +30,34 @@ def save_atomic(obj: dict, path: str | Path) -> None:
 
 
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """A geoloc checkpoint dict; a missing, empty, truncated or foreign file raises an error naming `path`."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}. Pass ckpt=<run dir>/best.pt or last.pt.")
+    if path.stat().st_size == 0:
+        raise RuntimeError(f"could not read checkpoint {path}: it is empty (0 bytes), e.g. a copy that failed. "
+                           "Use another last.pt/best.pt.")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:  # a truncated or foreign file
-        raise RuntimeError(f"could not read checkpoint {path}: {err}. Is it a geoloc last.pt/best.pt?") from err
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # a truncated or foreign file; torch's own advice (weights_only=False) would be unsafe
+        raise RuntimeError(f"could not read checkpoint {path}: it is {_unreadable(path, err)}") from err
+    if not isinstance(state, dict) or not isinstance(state.get("task"), dict):
+        held = f"a dict with keys {sorted(map(str, state))[:6]}" if isinstance(state, dict) else type(state).__name__
+        raise RuntimeError(f"could not read checkpoint {path}: it holds {held}, not a geoloc checkpoint (a dict with "
+                           "the task's weights under 'task'). Pass a last.pt/best.pt written by geoloc.")
+    return state
+
+
+def _unreadable(path: Path, err: Exception) -> str:
+    """Why torch.load failed, in one line (torch's message runs to a page)."""
+    with open(path, "rb") as f:
+        if f.read(64).startswith(b"version https://git-lfs"):
+            return "a Git LFS pointer, not the checkpoint itself: fetch it with `git lfs pull`"
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    refused = [line for line in lines if line.startswith("WeightsUnpickler error:")]
+    if refused:  # a pickle of arbitrary Python objects: never written by geoloc's trainer
+        return f"not a geoloc checkpoint: it holds objects a safe load refuses ({refused[0]})"
+    return f"truncated, corrupt or not a geoloc last.pt/best.pt ({type(err).__name__}: {lines[0] if lines else ''})"
 
 
 def rng_state() -> dict[str, Any]:

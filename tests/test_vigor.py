@@ -94,6 +94,15 @@ def test_cross_area_cities_and_file(released):
     assert one.num_queries == 5 and {r.parent.parent.name for r in one.references} == {"Seattle"}
 
 
+def test_another_splits_folder(released):
+    root, _ = released
+    (root / "splits").rename(root / "splits__corrected")
+    s = vigor_split(root, "same_area", "test", splits_dir="splits__corrected")
+    assert s.num_queries == 8 and s.references[0].parent == root / "Chicago" / "satellite"
+    with pytest.raises(FileNotFoundError, match="cities found there: \\[\\]"):
+        vigor_split(root, "same_area", "test")
+
+
 def _break(root: Path, file: str, text: str):
     (root / "splits" / "Chicago" / file).write_text(text)
 
@@ -201,6 +210,13 @@ def test_synthetic_cross_area_and_panorama_list(synthetic):
     assert cross.queries == same[0].queries + same[1].queries  # pano_label_balanced: train lines, then test
     with pytest.raises(FileNotFoundError, match="city 'Seattle'"):
         vigor_split(synthetic, "cross_area", "train")  # the tiny preset renders two cities only
+
+
+def test_older_layouts_keep_their_marker(tmp_path):
+    """The cached default dataset stays valid: a cvusa marker has exactly the keys it had before vigor/u1652."""
+    root = generate("cvusa", tmp_path / "c", 1, 0, preset="tiny", progress=False)
+    marker = json.loads((root / MARKER).read_text())
+    assert sorted(marker) == ["complete", "config", "generator", "layout", "preset", "seed", "train", "val", "version"]
 
 
 def test_synthetic_options_are_checked(tmp_path):

@@ -45,8 +45,11 @@ def split_file(setting: str, split: str) -> str:
     return f"same_area_balanced_{split}.txt" if setting == "same_area" else "pano_label_balanced.txt"
 
 
-def vigor_split(root, setting: str = "same_area", split: str = "test", cities=None) -> RetrievalSplit:
-    """Read (setting, split) for the given cities (default: the setting's, see default_cities)."""
+def vigor_split(root, setting: str = "same_area", split: str = "test", cities=None,
+                splits_dir: str = "splits") -> RetrievalSplit:
+    """Read (setting, split) for the given cities (default: the setting's, see default_cities). splits_dir names
+    the folder of split files under root: `splits` as released, or e.g. `splits__corrected` (SliceMatch's
+    re-computed labels, same format)."""
     root = Path(root)
     cities = tuple(default_cities(setting, split) if cities is None else cities)
     listing = split_file(setting, split)
@@ -54,9 +57,9 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
         raise ValueError(f"VIGOR cities must be a non-empty list without repeats, got {list(cities)}")
     references, ref_latlon, queries, q_latlon, positives, semi = [], [], [], [], [], []
     for city in cities:
-        city_dir = root / "splits" / city
+        city_dir = root / splits_dir / city
         if not city_dir.is_dir():
-            found = sorted(p.name for p in (root / "splits").glob("*") if p.is_dir())
+            found = sorted(p.name for p in (root / splits_dir).glob("*") if p.is_dir())
             raise FileNotFoundError(
                 f"VIGOR split folder {city_dir} not found (city {city!r}). dataset.root must be the VIGOR folder "
                 f"holding <City>/panorama, <City>/satellite and splits/<City>/; cities found there: {found}.")
@@ -78,7 +81,7 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
             positives.append(index[sats[0]])
             semi.append([index[s] for s in sats[1:]])
     if not queries:
-        raise ValueError(f"VIGOR {setting} {split}: the {listing} files of {list(cities)} under {root / 'splits'} "
+        raise ValueError(f"VIGOR {setting} {split}: the {listing} files of {list(cities)} under {root / splits_dir} "
                          "list no panorama")
     return RetrievalSplit(
         name=f"vigor/{setting}/{split}", root=root, queries=queries, references=references,

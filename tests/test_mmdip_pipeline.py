@@ -89,7 +89,7 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
     assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns != mtime
     assert (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns == vocab_mtime
 
-    # Empty Cities 3-panel images: static-image recovery scores
+    # Empty Cities 3-panel images: static-image recovery scores, and the place protocol (tests/test_mmdip_realformat)
     ec = tmp_path / "ec"
     ec.mkdir()
     rng = np.random.default_rng(0)
@@ -97,6 +97,6 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
         cv2.imwrite(str(ec / f"{i}.png"), rng.integers(0, 255, (60, 240, 3), np.uint8))
     ec_cfg = compose_train([*TINY_MMDIP, "dataset.name=emptycities", f"dataset.root={ec}", "dataset.split=null"])
     scores = mmdip.evaluate(ec_cfg, run / "phase2" / "best.pt", tmp_path / "ec.json")
-    assert set(scores) == {"L1", "L2", "PSNR", "SSIM", "num_images"} and scores["num_images"] == 2
+    assert {"L1", "L2", "PSNR", "SSIM", "num_images"} <= set(scores) and scores["num_images"] == 2
     seg = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase1" / "best.pt")
     assert {"PA", "MPA", "MIoU", "FWIoU"} <= set(seg)

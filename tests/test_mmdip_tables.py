@@ -34,3 +34,19 @@ def test_tables_one_to_four_and_figures(tmp_path):
     assert list(t4) == ["L=0", "L=2", "L=4", "L=6"] and all(v["coding_ms"] > 0 for v in t4.values())
     for png in ("recall_curves.png", "qualitative_ssggnet.png", "qualitative_variants.png"):
         assert (out / png).stat().st_size > 0
+
+
+def test_mgan_rows_say_it_reads_the_ground_truth_mask(tmp_path):
+    scores = {"L1": 0.1, "L2": 0.01, "PSNR": 20.0, "SSIM": 0.5}
+    tables.table_2({"pix2pix": scores, "mgan": scores}, tmp_path)
+    md, data = (tmp_path / "table_2.md").read_text(), json.loads((tmp_path / "table_2.json").read_text())
+    assert "| MGAN (oracle mask) |" in md and "ground-truth dynamic-object mask at test time" in md
+    assert data["mgan"]["oracle_mask"] is True and "oracle_mask" not in data["pix2pix"]
+    recall = {k: 0.5 for k in ("R@1", "R@5", "R@10", "R@1%")}
+    metrics = {"num_queries": 6, **{p + k: v for p in ("", "BoW/", "SPM/", "dynamic-BoW/") for k, v in recall.items()}}
+    tables.table_3({"mgan": metrics, "ssggnet": metrics}, tmp_path)
+    md, data = (tmp_path / "table_3.md").read_text(), json.loads((tmp_path / "table_3.json").read_text())
+    assert "| MGAN (oracle mask) + BoW |" in md and "ground-truth dynamic-object mask at test time" in md
+    assert data["mgan-BoW"]["oracle_mask"] is True and "oracle_mask" not in data["ssggnet-BoW"]
+    tables.table_2({"ssggnet": scores}, tmp_path)  # no oracle row, no oracle note
+    assert "oracle" not in (tmp_path / "table_2.md").read_text()

@@ -164,8 +164,14 @@ class DynamicDataset(Dataset):
                        is_query=bool(self.is_query[index]))
 
 
+def panel_folder(root: Path, split: str | None) -> Path:
+    """The folder a panel reader lists: ROOT/<split>/ when it exists, else ROOT itself."""
+    root = Path(root)
+    return root / split if split and (root / split).is_dir() else root
+
+
 def _panel_files(root: Path, split: str | None) -> list[Path]:
-    folder = root / split if split and (root / split).is_dir() else root
+    folder = panel_folder(root, split)
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if not files:
         raise FileNotFoundError(f"no PNG/JPG images in {folder}")
@@ -219,7 +225,8 @@ class CarlaFourPanelDataset(Dataset):
 class EmptyCitiesDataset(Dataset):
     """Empty Cities (Bescos et al.): one image per sample, dynamic | static | dynamic mask, each 800 x 600.
 
-    No labels: for static-image recovery (translation) metrics only.
+    No labels, so it is for evaluation only. Each file is its own place: its dynamic panel is the query, its
+    static panel the reference (the place protocol), and the static panel is the recovery ground truth.
     """
 
     def __init__(self, root, split: str | None = None, image_size=None):
@@ -239,7 +246,7 @@ class EmptyCitiesDataset(Dataset):
             self.warned = True
         mask = (mask.max(axis=2) > 127).astype(np.uint8) * 255
         return _sample(self.resize(dyn, path), self.resize(sta, path), self.resize(mask, path, nearest=True),
-                       index=index)
+                       index=index, place=index)
 
 
 def _label_maps(root: Path, split: str, fmt: str):

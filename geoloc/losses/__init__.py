@@ -1,8 +1,11 @@
-"""Losses: the cross-view soft-margin triplet and its GMS queue; the dynamic-scene segmentation / GAN losses."""
+"""Losses: the cross-view soft-margin triplet and its GMS queue, symmetric InfoNCE (Sample4Geo), and the
+dynamic-scene segmentation / GAN losses."""
 from geoloc.losses.gan import lsgan_d_loss, lsgan_g_loss
 from geoloc.losses.gms_queue import GMSQueue
+from geoloc.losses.infonce import InfoNCELoss, info_nce
 from geoloc.losses.perceptual import VGGPerceptualLoss
 from geoloc.losses.segmentation import class_weights
 from geoloc.losses.triplet import soft_margin_triplet
 
-__all__ = ["GMSQueue", "VGGPerceptualLoss", "class_weights", "lsgan_d_loss", "lsgan_g_loss", "soft_margin_triplet"]
+__all__ = ["GMSQueue", "InfoNCELoss", "VGGPerceptualLoss", "class_weights", "info_nce", "lsgan_d_loss", "lsgan_g_loss",
+           "soft_margin_triplet"]

@@ -5,9 +5,14 @@ Encoder: two downsampler blocks (3x3 stride-2 conv concatenated with a max-pool)
 Decoder: transposed-conv upsamplers to 64 and 16 channels, two non-bt-1D blocks each, and a 2x2 transposed conv
 to the classes. About 2.06M parameters for 8 classes. Returns logits B x C x H x W (H, W multiples of 8); the
 softmax map S and argmax M of the paper are `logits.softmax(1)` and `logits.argmax(1)`.
+
+Weights saved by the authors' code (erfnet_pytorch's `Net`) load after `reference_state_dict` renames their keys:
+`model.load_state_dict(reference_state_dict(torch.load(path)))`.
 """
 
 from __future__ import annotations
+
+import re
 
 import torch
 import torch.nn.functional as F
@@ -26,7 +31,11 @@ class Downsampler(nn.Module):
 
 
 class NonBottleneck1D(nn.Module):
-    """Residual block of factorised 3x1 / 1x3 convolutions; the second pair is dilated."""
+    """Residual block of factorised 3x1 / 1x3 convolutions; the second pair is dilated.
+
+    x -> conv3x1_1 -> ReLU -> conv1x3_1 -> bn1 -> ReLU -> conv3x1_2 -> ReLU -> conv1x3_2 -> bn2 -> dropout,
+    then ReLU(that + x), as in Romera et al.'s released erfnet.py (same parameter names).
+    """
 
     def __init__(self, ch: int, dropout: float, dilation: int):
         super().__init__()
@@ -40,9 +49,10 @@ class NonBottleneck1D(nn.Module):
         self.dropout = nn.Dropout2d(dropout) if dropout > 0 else nn.Identity()
 
     def forward(self, x):
-        y = F.relu(self.conv1x3_1(F.relu(self.conv3x1_1(x))))
-        y = F.relu(self.bn1(y))
-        y = F.relu(self.conv3x1_2(y))
+        # the reference order: no ReLU between conv1x3 and its BN (one there changes the function once BN holds
+        # trained statistics, so official weights would compute something else)
+        y = self.bn1(self.conv1x3_1(F.relu(self.conv3x1_1(x))))
+        y = F.relu(self.conv3x1_2(F.relu(y)))
         y = self.dropout(self.bn2(self.conv1x3_2(y)))
         return F.relu(y + x)
 
@@ -78,3 +88,23 @@ class ERFNet(nn.Module):
         if h % 8 or w % 8:
             raise ValueError(f"ERFNet needs H and W divisible by 8, got {h}x{w}")
         return self.head(self.decoder(self.encoder(x)))
+
+
+def reference_state_dict(state: dict) -> dict:
+    """Rename a state dict of erfnet_pytorch's `Net` (optionally saved from DataParallel) to ERFNet's keys.
+
+    encoder.initial_block -> encoder.0, encoder.layers.i -> encoder.{i+1}, decoder.layers.i -> decoder.i,
+    decoder.output_conv -> head. encoder.output_conv (the encoder-only pre-training head, unused by the full
+    network) is dropped. Keys that fit none of these are kept, so load_state_dict names them.
+    """
+    renamed = {}
+    for key, value in state.items():
+        key = key.removeprefix("module.")
+        if key.startswith("encoder.output_conv."):
+            continue
+        key = re.sub(r"^encoder\.initial_block\.", "encoder.0.", key)
+        key = re.sub(r"^encoder\.layers\.(\d+)\.", lambda m: f"encoder.{int(m.group(1)) + 1}.", key)
+        key = re.sub(r"^decoder\.layers\.(\d+)\.", r"decoder.\1.", key)
+        key = re.sub(r"^decoder\.output_conv\.", "head.", key)
+        renamed[key] = value
+    return renamed

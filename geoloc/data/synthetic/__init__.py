@@ -3,7 +3,8 @@
     generate(layout, out, train, val, seed=0, preset=None, workers=1, **overrides) -> Path
     ensure_dataset(layout, root, preset, train, val, seed=0, workers=1, **overrides) -> Path
 
-Layouts: 'cvusa', 'cvact' (the real datasets' trees) and 'dynamic' (docs/dynamic_layout.md). See docs/synthetic.md.
+Layouts: 'cvusa', 'cvact', 'vigor', 'u1652' (the real datasets' trees) and 'dynamic' (docs/dynamic_layout.md).
+See docs/synthetic.md.
 """
 from .appearance import AppearanceGap
 from .classes import ALL_CLASSES, STATIC_CLASSES

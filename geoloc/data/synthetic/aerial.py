@@ -1,4 +1,5 @@
-"""Orthographic top-down tile: north up, east right, the place's camera at the exact centre."""
+"""Orthographic top-down tile: north up, east right, the place's camera at the exact centre (or any square of
+cells, for tiles off the world's centre)."""
 from __future__ import annotations
 
 import cv2
@@ -21,10 +22,16 @@ def tile_slice(world: World, tile_m: float) -> slice:
 def render_aerial(world: World, light: Lighting, tile_m: float, size: int, season: float):
     """-> (rgb float size x size x 3 in [0, 1], class map size x size uint8)."""
     sl = tile_slice(world, tile_m)
-    cls = world.cls[sl, sl]
-    albedo = world.top[sl, sl].astype(np.float32) * (1.0 / 255.0)
+    return render_aerial_window(world, light, sl, sl, size, season)
+
+
+def render_aerial_window(world: World, light: Lighting, rows: slice, cols: slice, size: int, season: float):
+    """The square of cells [rows, cols] (any place in the world: the vigor layout's overlapping tiles) -> (rgb float
+    size x size x 3 in [0, 1], class map size x size uint8)."""
+    cls = world.cls[rows, cols]
+    albedo = world.top[rows, cols].astype(np.float32) * (1.0 / 255.0)
     albedo = apply_season(albedo, cls, season)
-    rgb = albedo * light.top_shade_block(sl, sl)[..., None]
+    rgb = albedo * light.top_shade_block(rows, cols)[..., None]
     t = cls.shape[0]
     interp = cv2.INTER_AREA if size < t else cv2.INTER_LINEAR
     rgb = cv2.resize(rgb, (size, size), interpolation=interp)

@@ -1,7 +1,9 @@
 """Generator settings and named presets.
 
-A preset is a bundle of sizes for all three layouts plus default sample counts; keyword overrides replace single
-fields. `SynthConfig` rejects unknown fields and bad values at construction, before any work starts.
+A preset is a bundle of sizes for all layouts plus default sample counts; keyword overrides replace single
+fields. `SynthConfig` rejects unknown fields and bad values at construction, before any work starts. The vigor and
+u1652 layouts have a few settings of their own (`VigorOptions`, `U1652Options`); they live apart from
+`SynthConfig` so the markers of the older layouts' datasets (which record the whole config) stay as they were.
 """
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ from dataclasses import asdict, dataclass, fields
 from .appearance import AppearanceGap
 from .styles import STYLES
 
-LAYOUTS = ("cvusa", "cvact", "dynamic")
+LAYOUTS = ("cvusa", "cvact", "dynamic", "vigor", "u1652")
 
 
 @dataclass(frozen=True)
@@ -81,7 +83,46 @@ class SynthConfig:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class VigorOptions:
+    """vigor layout: the first `cities` of VIGOR's cities (Chicago, NewYork, SanFrancisco, Seattle), each a
+    `grid` x `grid` array of satellite tiles whose centres lie half a tile apart."""
+
+    cities: int = 4
+    grid: int = 16
+
+    def __post_init__(self):
+        _count(self, "cities", 1, 4)
+        _count(self, "grid", 2, 200)
+
+
+@dataclass(frozen=True)
+class U1652Options:
+    """u1652 layout: `drone_views` oblique views per building on an orbit around it; `extra_gallery` buildings
+    only in the test galleries (University-1652 has 250 such distractors)."""
+
+    drone_views: int = 54
+    extra_gallery: int = 0
+
+    def __post_init__(self):
+        _count(self, "drone_views", 1, 99)  # two-digit image-NN names, as in the release
+        _count(self, "extra_gallery", 0, 9999)
+
+
+def _count(obj, name: str, low: int, high: int) -> None:
+    v = getattr(obj, name)
+    try:
+        ok = not isinstance(v, bool) and float(v) == int(v) and low <= v <= high
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {v!r}")
+    object.__setattr__(obj, name, int(v))
+
+
 FIELDS = tuple(f.name for f in fields(SynthConfig))
+OPTIONS = {"vigor": VigorOptions, "u1652": U1652Options}
+OPTION_FIELDS = {layout: tuple(f.name for f in fields(cls)) for layout, cls in OPTIONS.items()}
 
 PRESETS = {
     # used by tests: seconds for a handful of samples
@@ -92,25 +133,55 @@ PRESETS = {
                   view_size=128, cell_m=0.5625, world_margin=1.3, train=1200, val=300),  # 1 aerial px per cell
     "dynamic_small": dict(view_size=160, cell_m=0.5, world_margin=1.3, train=300, val=100),
     "dynamic_tiny": dict(view_size=48, cell_m=1.0, tile_m=96.0, train=3, val=2),
-    # the real datasets' sizes and counts
+    # vigor: train / val count panoramas per city; u1652: buildings
+    "vigor_tiny": dict(aerial_size=64, sphere_height=64, sphere_width=128, cell_m=1.0, tile_m=96.0,
+                       world_margin=1.5, cities=2, grid=3, train=4, val=3),
+    "vigor_small": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
+                        world_margin=2.0, cities=4, grid=8, train=64, val=32),
+    "u1652_tiny": dict(aerial_size=64, view_size=48, cell_m=1.0, tile_m=96.0, world_margin=2.0, fov_deg=60.0,
+                       drone_views=3, extra_gallery=1, train=3, val=2),
+    "u1652_small": dict(aerial_size=256, view_size=192, cell_m=0.5, tile_m=120.0, world_margin=2.0, fov_deg=60.0,
+                        drone_views=8, extra_gallery=16, train=48, val=48),
+    # the real datasets' sizes and counts (vigor and u1652: image sizes; the real counts would be days of CPU)
     "cvusa": dict(train=35532, val=8884),
     "cvact": dict(aerial_size=1200, cell_m=0.2, train=35532, val=8884),
     "dynamic": dict(train=2000, val=500),
+    "vigor": dict(aerial_size=640, sphere_height=1024, sphere_width=2048, cell_m=0.228, tile_m=72.96,
+                  world_margin=2.0, cities=4, grid=16, train=500, val=500),
+    "u1652": dict(aerial_size=512, view_size=512, cell_m=0.25, tile_m=120.0, world_margin=2.0, fov_deg=60.0,
+                  drone_views=54, extra_gallery=250, train=701, val=701),
 }
-DEFAULT_PRESET = {"cvusa": "cvusa", "cvact": "cvact", "dynamic": "dynamic"}
+DEFAULT_PRESET = {layout: layout for layout in LAYOUTS}
 
 
 def resolve(layout: str, preset: str | None, overrides: dict) -> tuple[SynthConfig, dict]:
-    """-> (config, preset sample counts {'train': n, 'val': m})."""
+    """-> (config, preset sample counts {'train': n, 'val': m}). Overrides may also name the layout's options."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; expected one of {LAYOUTS}")
     name = DEFAULT_PRESET[layout] if preset is None else preset
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
-    bad = sorted(set(overrides) - set(FIELDS))
+    mine = OPTION_FIELDS.get(layout, ())
+    bad = sorted(set(overrides) - set(FIELDS) - set(mine))
+    foreign = {k: lay for lay, names in OPTION_FIELDS.items() for k in names if k in bad}
+    if foreign:
+        k = sorted(foreign)[0]
+        raise TypeError(f"synthetic option {k!r} belongs to layout {foreign[k]!r}, not {layout!r}")
     if bad:
-        raise TypeError(f"unknown synthetic option(s) {bad}; valid options: {list(FIELDS)}")
-    values = {k: v for k, v in PRESETS[name].items() if k not in ("train", "val")}
-    values.update({k: v for k, v in overrides.items() if v is not None})
+        raise TypeError(f"unknown synthetic option(s) {bad}; valid options: {list(FIELDS) + list(mine)}")
+    values = {k: v for k, v in PRESETS[name].items() if k in FIELDS}
+    values.update({k: v for k, v in overrides.items() if v is not None and k in FIELDS})
     counts = {k: PRESETS[name][k] for k in ("train", "val")}
     return SynthConfig(**values), counts
+
+
+def resolve_options(layout: str, preset: str | None, overrides: dict):
+    """The layout's own options (VigorOptions / U1652Options) from the preset and overrides; None for the
+    layouts without any. Call after resolve(), which checks the names."""
+    if layout not in OPTIONS:
+        return None
+    name = DEFAULT_PRESET[layout] if preset is None else preset
+    keys = OPTION_FIELDS[layout]
+    values = {k: v for k, v in PRESETS[name].items() if k in keys}
+    values.update({k: v for k, v in overrides.items() if v is not None and k in keys})
+    return OPTIONS[layout](**values)

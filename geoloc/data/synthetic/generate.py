@@ -13,18 +13,23 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import shutil
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
 from tqdm import tqdm
 
 from . import layouts as LY
-from .config import SynthConfig, resolve
+from . import u1652_layout, vigor_layout
+from .config import OPTIONS, SynthConfig, resolve, resolve_options
 from .samples import render_pair, render_place_views
 
 VERSION = "1.0"
 MARKER = "geoloc_synthetic.json"
 PARTIAL = ".geoloc_partial"
+# Layouts written by a module with check(cfg, opts), jobs(opts, train, val), run(cfg, opts, seed, kind, index,
+# number, root) -> record, and finish(root, opts, jobs, records). The three older layouts are written below.
+WRITERS = {"vigor": vigor_layout, "u1652": u1652_layout}
 
 
 class DatasetMismatchError(RuntimeError):
@@ -33,13 +38,16 @@ class DatasetMismatchError(RuntimeError):
 
 def generate(layout: str, out, train: int | None = None, val: int | None = None, seed: int = 0,
              preset: str | None = None, workers: int = 1, progress: bool = True, **overrides) -> Path:
-    """Write a synthetic dataset in `layout` ('cvusa', 'cvact' or 'dynamic') to `out` and return its path.
+    """Write a synthetic dataset in `layout` ('cvusa', 'cvact', 'dynamic', 'vigor' or 'u1652') to `out` and return
+    its path.
 
-    train/val count pairs (cvusa, cvact) or places (dynamic: two views each); None takes the preset's counts.
-    Overrides are SynthConfig fields (sizes, style, appearance-gap controls). The same arguments give
-    byte-identical files whatever the number of workers.
+    train/val count pairs (cvusa, cvact), places (dynamic: two views each), panoramas per city (vigor: its
+    same-area train and test splits) or buildings (u1652: train and test); None takes the preset's counts.
+    Overrides are SynthConfig fields (sizes, style, appearance-gap controls) and the layout's options
+    (VigorOptions, U1652Options). The same arguments give byte-identical files whatever the number of workers.
     """
     cfg, counts = resolve(layout, preset, overrides)
+    opts = resolve_options(layout, preset, overrides)
     train = counts["train"] if train is None else train
     val = counts["val"] if val is None else val
     for name, v in (("train", train), ("val", val), ("seed", seed), ("workers", workers)):
@@ -52,16 +60,21 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
     root = Path(out)
     marker = {"generator": "geoloc.data.synthetic", "version": VERSION, "layout": layout, "seed": seed,
               "train": train, "val": val, "preset": preset, "config": cfg.as_dict()}
+    if opts is not None:  # only the newer layouts' markers carry options, so older datasets stay valid
+        marker["options"] = asdict(opts)
+        WRITERS[layout].check(cfg, opts)
     if _check_out(root, marker):
         return root
     root.mkdir(parents=True, exist_ok=True)
     _write_marker(root, marker, complete=False)
 
-    jobs = _jobs(layout, train, val)
+    jobs = WRITERS[layout].jobs(opts, train, val) if layout in WRITERS else _jobs(layout, train, val)
     done = root / PARTIAL
     done.mkdir(exist_ok=True)
     todo = [j for j in jobs if not (done / f"{j[2]:07d}.json").exists()]
-    args = [(layout, cfg.as_dict(), seed, split, index, number, str(root)) for split, index, number in todo]
+    opts_dict = None if opts is None else asdict(opts)
+    args = [(layout, cfg.as_dict(), opts_dict, seed, split, index, number, str(root))
+            for split, index, number in todo]
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=f"synthetic {layout}", unit="sample",
                disable=not progress)
     if workers == 1 or len(args) <= 1:
@@ -74,7 +87,11 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
             for _ in pool.imap_unordered(_run, args, chunksize=2):
                 bar.update()
     bar.close()
-    _finish(layout, root, jobs, done)
+    if layout in WRITERS:
+        records = {n: json.loads((done / f"{n:07d}.json").read_text()) for _, _, n in jobs}
+        WRITERS[layout].finish(root, opts, jobs, records)
+    else:
+        _finish(layout, root, jobs, done)
     shutil.rmtree(done)
     _write_marker(root, marker, complete=True)
     return root
@@ -133,10 +150,12 @@ def _init_worker() -> None:
 
 
 def _run(args) -> None:
-    layout, cfg_dict, seed, split, index, number, root = args
+    layout, cfg_dict, opts_dict, seed, split, index, number, root = args
     cfg, root = SynthConfig(**cfg_dict), Path(root)
     record = {"split": split, "rows": []}
-    if layout == "dynamic":
+    if layout in WRITERS:
+        record = WRITERS[layout].run(cfg, OPTIONS[layout](**opts_dict), seed, split, index, number, root)
+    elif layout == "dynamic":
         for view in render_place_views(cfg, seed, split, index):
             stem = LY.dynamic_stem(number, view["role"])
             LY.write_dynamic_view(root, stem, view)

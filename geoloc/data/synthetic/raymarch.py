@@ -152,6 +152,8 @@ def _bilinear(img: np.ndarray, world: World, x: np.ndarray, y: np.ndarray) -> np
 
     One cv2.remap call; remap maps are limited to 32767 columns, so the points are laid out in rows of 4096."""
     n = len(x)
+    if n == 0:  # cv2.remap refuses an empty map (a view that sees only walls, e.g. from inside a building)
+        return np.zeros((0, 3), np.float32)
     rows = -(-n // 4096)
     half, inv = world.extent / 2, 1.0 / world.cell
     mx = np.zeros(rows * 4096, np.float32)

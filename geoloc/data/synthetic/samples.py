@@ -27,9 +27,12 @@ def sample_rngs(seed: int, split: str, index: int, n: int = 8) -> list[np.random
     return [np.random.default_rng(s) for s in ss.spawn(n)]
 
 
-def make_place(cfg: SynthConfig, rng: np.random.Generator) -> Place:
-    style = choose_style(rng, None) if cfg.style == "mix" else cfg.style
-    _, n = cfg.world_cells()
+def make_place(cfg: SynthConfig, rng: np.random.Generator, style_mix: dict | None = None,
+               cells: int | None = None) -> Place:
+    """A textured place world of `cells` (default: cfg.world_cells()) cells a side; cfg.style 'mix' draws the
+    style from style_mix (default styles.DEFAULT_MIX)."""
+    style = choose_style(rng, style_mix) if cfg.style == "mix" else cfg.style
+    n = cfg.world_cells()[1] if cells is None else cells
     place = build_place(rng, style, n * cfg.cell_m, cfg.cell_m)
     _texture(place.world, rng)
     return place
@@ -45,7 +48,7 @@ def _texture(world, rng) -> None:
         arr[...] = t
 
 
-def _street_traffic(rng, place: Place, extent, aerial_agents, change: float, keep, radius, density):
+def street_traffic(rng, place: Place, extent, aerial_agents, change: float, keep, radius, density):
     """The street view's traffic: each aerial agent stays with prob 1-change, fresh agents come with prob change."""
     kept = [a for a in aerial_agents if rng.random() >= change]
     fresh = T.sample_traffic(rng, place.roads, place.style, extent, keep, radius, density)
@@ -65,8 +68,8 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     cond_a = base_conditions(r_cond, gap)
     cond_s = other_time(r_cond, gap, cond_a)
     agents_a = T.sample_traffic(r_traffic, place.roads, place.style, extent, [(0, 0)], 5.0, cfg.traffic)
-    agents_s = _street_traffic(r_traffic, place, extent, agents_a, gap.resolved()["traffic_change"],
-                               [(0, 0)], 5.0, cfg.traffic)
+    agents_s = street_traffic(r_traffic, place, extent, agents_a, gap.resolved()["traffic_change"],
+                              [(0, 0)], 5.0, cfg.traffic)
 
     world_a = T.stamp(place.world, T.near(agents_a, cfg.tile_m / 2 + 20))
     rgb_a, cls_a = render_aerial(world_a, Lighting(world_a, cond_a.sun), cfg.tile_m, cfg.aerial_size,

@@ -11,10 +11,12 @@ from .world import World
 
 
 def render_street(world: World, light: Lighting, sky: Sky, cam_xyz, az_deg: np.ndarray, tan_el: np.ndarray,
-                  season: float, fog_dist: float = 450.0):
+                  season: float, fog_dist: float = 450.0, d_max: float | None = None):
     """Rays given by az_deg (W,) and tan_el (H, W) or (H, 1) -> (rgb float H x W x 3 in [0,1], cls H x W,
-    dist H x W horizontal metres, inf for sky)."""
-    d_max = 0.5 * world.extent - np.hypot(cam_xyz[0], cam_xyz[1]) - 2 * world.cell  # stay inside the grid
+    dist H x W horizontal metres, inf for sky). d_max: how far the rays are marched; by default the radius that
+    stays inside the grid in every direction (a caller that knows its rays' directions may pass more)."""
+    if d_max is None:
+        d_max = 0.5 * world.extent - np.hypot(cam_xyz[0], cam_xyz[1]) - 2 * world.cell  # stay inside the grid
     hits = march(world, light, cam_xyz, az_deg, tan_el, sample_distances(world.cell, max(d_max, 5.0)))
     albedo = apply_season(hits.albedo, hits.cls, season)
     rgb = albedo * hits.shade[..., None]

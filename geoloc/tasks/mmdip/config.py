@@ -11,6 +11,11 @@ from dataclasses import dataclass, field
 SEGMENTERS = ("erfnet", "fcn", "unet")
 VARIANTS = ("ssggnet", "ssggnet_sm", "pix2pix", "mgan")
 DATASETS = ("dynamic", "emptycities", "carla4")
+# Generator loss weights (adversarial, L1, perceptual) by name: task.translation.loss_weights
+GENERATOR_LOSS_WEIGHTS = {
+    "paper": {"adv": 1.0, "l1": 1.0, "perceptual": 1.0},  # MMDIP eq. 2: L_G = L_adv + L_pixel + L_perceptual
+    "pix2pix": {"adv": 1.0, "l1": 100.0, "perceptual": 10.0},  # pix2pix's lambda_L1 = 100; VGG term 10 (pix2pixHD)
+}
 
 
 @dataclass
@@ -44,9 +49,7 @@ class TranslationConfig:
     lr_g: float = 2e-3
     lr_d: float = 4e-3
     beta1: float = 0.5  # Adam beta1 of G and D, as in pix2pix
-    lambda_adv: float = 1.0
-    lambda_l1: float = 100.0
-    lambda_perceptual: float = 10.0
+    loss_weights: str = "pix2pix"  # pix2pix (adv 1, L1 100, perceptual 10) | paper (eq. 2: 1, 1, 1)
     lambda_seg: float = 1.0  # weighted cross-entropy keeps the segmentation static while G trains through it
     perceptual_weights: str = "none"  # imagenet (torch hub cache) | /path/to/vgg16.pth | none (random, CPU smoke)
     perceptual_layers: list[str] = field(default_factory=lambda: ["relu1_2", "relu2_2", "relu3_3"])
@@ -61,6 +64,14 @@ class TranslationConfig:
             raise ValueError(f"task.translation.variant must be one of {VARIANTS}, got {self.variant!r}")
         if self.epochs < 1 or self.batch_size < 1 or min(self.lr_seg, self.lr_g, self.lr_d) <= 0:
             raise ValueError("task.translation.epochs and batch_size must be >= 1 and learning rates > 0")
+        if self.loss_weights not in GENERATOR_LOSS_WEIGHTS:
+            raise ValueError(f"task.translation.loss_weights must be one of {tuple(GENERATOR_LOSS_WEIGHTS)}, "
+                             f"got {self.loss_weights!r}")
+
+    @property
+    def generator_loss_weights(self) -> dict[str, float]:
+        """{'adv', 'l1', 'perceptual'} -> weight of that term of the generator loss."""
+        return GENERATOR_LOSS_WEIGHTS[self.loss_weights]
 
 
 @dataclass

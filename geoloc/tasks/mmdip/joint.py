@@ -1,7 +1,8 @@
 """Phase 2 of MMDIP: segmentation + semantics-guided generator (SSGGNet) + PatchGAN, trained end to end.
 
-Losses: LSGAN adversarial, lambda_l1 * L1 and lambda_perceptual * VGG16 perceptual on the recovered static image,
-plus lambda_seg * the eq. 1 weighted cross-entropy that keeps the segmentation static. Per-module learning rates
+Losses: LSGAN adversarial, L1 and VGG16 perceptual on the recovered static image, weighted as
+`task.translation.loss_weights` names (paper: eq. 2's 1 / 1 / 1; pix2pix: 1 / 100 / 10), plus lambda_seg * the
+eq. 1 weighted cross-entropy that keeps the segmentation static. Per-module learning rates
 (paper: 1e-4 segmentation, 2e-3 G, 4e-3 D): segmentation and G are two parameter groups of one Adam (one
 backward, one step), D has its own. D and G alternate every batch, so the task steps its own optimizers
 (`automatic_optimization = False`) through engine.backward / engine.step / engine.autocast.
@@ -31,12 +32,13 @@ class JointTask(Task):
     def __init__(self, cfg: MMDIPConfig, fractions, training: bool = True):
         super().__init__()
         self.cfg, self.tcfg, self.num_classes = cfg, cfg.translation, cfg.num_classes
+        self.weights = cfg.translation.generator_loss_weights
         self.seg = build_segmenter(cfg.segmentation, cfg.num_classes)
         self.generator = build_generator(cfg.translation, cfg.num_classes)
         self.discriminator = build_discriminator(cfg.translation)
         self.register_buffer("class_weights", class_weights(fractions, cfg.segmentation.class_weight_formula))
         self.perceptual = (VGGPerceptualLoss(self.tcfg.perceptual_weights, tuple(self.tcfg.perceptual_layers))
-                           if training and self.tcfg.lambda_perceptual > 0 else None)
+                           if training and self.weights["perceptual"] > 0 else None)
 
     def state_dict(self, *args, **kwargs):
         # the frozen VGG is not learnable state: keep it out of checkpoints
@@ -76,11 +78,11 @@ class JointTask(Task):
             adv = lsgan_g_loss(self.discriminator(torch.cat([fake, dyn_signed], 1)))
             l1 = F.l1_loss(fake, real)
             ce = F.cross_entropy(logits.float(), batch["label"], weight=self.class_weights)
-            loss = self.tcfg.lambda_adv * adv + self.tcfg.lambda_l1 * l1 + self.tcfg.lambda_seg * ce
+            loss = self.weights["adv"] * adv + self.weights["l1"] * l1 + self.tcfg.lambda_seg * ce
             perc = torch.zeros((), device=fake.device)
             if self.perceptual is not None:
                 perc = self.perceptual((fake.float() + 1) / 2, batch["static"])
-                loss = loss + self.tcfg.lambda_perceptual * perc
+                loss = loss + self.weights["perceptual"] * perc
         engine.backward(loss)
         engine.step(gen_opt)
         self.discriminator.requires_grad_(True)

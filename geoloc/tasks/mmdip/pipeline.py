@@ -3,6 +3,7 @@
 run_dir/phase1/{best,last}.pt   SegmentationTask checkpoints (best = MIoU)
 run_dir/phase2/{best,last}.pt   JointTask checkpoints (best = SSIM), start from phase1/best.pt
 run_dir/vpr/                    vocabulary.npz, gallery_<split>_<seg>.npz (+ maps), metrics_<split>.json
+run_dir/vpr/<dataset>/          the same for dataset=carla4 / emptycities (place protocols: protocol.py)
 """
 
 from __future__ import annotations
@@ -21,13 +22,14 @@ from geoloc.data.dynamic import (NUM_CLASSES, CarlaFourPanelDataset, DynamicData
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.eval.image import image_scores_per_image
 from geoloc.tasks.mmdip.config import DATASETS, DynamicDataConfig, MMDIPConfig
 from geoloc.tasks.mmdip.joint import JointTask
+from geoloc.tasks.mmdip.protocol import place_protocol
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
 
 TRANSFORM_KEYS = ("image_size",)  # must stay as trained
+IMAGE_KEYS = ("L1", "L2", "PSNR", "SSIM")
 
 
 def dataset_root(cfg: DynamicDataConfig) -> Path:
@@ -41,6 +43,12 @@ def dataset_root(cfg: DynamicDataConfig) -> Path:
                               f"-seed{cfg.seed}")
     return Path(ensure_dataset("dynamic", root, preset=cfg.preset, train=cfg.train_size, val=cfg.val_size,
                                seed=cfg.seed, workers=cfg.workers, view_size=cfg.view_size))
+
+
+def vpr_dir(run_dir: Path, dataset: str) -> Path:
+    """Where a run keeps its retrieval artefacts for `dataset`: vpr/ for the synthetic layout it trains on by
+    default, vpr/<dataset>/ for the others, so evaluating another reader never overwrites them."""
+    return Path(run_dir) / "vpr" if dataset == "dynamic" else Path(run_dir) / "vpr" / dataset
 
 
 def build_split(cfg: DynamicDataConfig, root: Path, split: str, train: bool, augment_seed: int = 0):
@@ -115,10 +123,11 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
                                      run_dir / "phase2", yaml, run_dir / "phase1" / "best.pt")
     print(f"phase 2 ({task_cfg.translation.variant}) best: " + _fmt(best2))
     result = {"phase1": best1, "phase2": best2}
-    if data_cfg.name == "dynamic" and dist.is_main():
-        out = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
-                                 run_dir / "vpr", model_id(run_dir / "phase2" / "best.pt"),
-                                 data_cfg.val_batch_size, trainer_cfg.num_workers)
+    if dist.is_main():
+        protocol = place_protocol(data_cfg.name, root, data_cfg.split, data_cfg.image_size)
+        out = evaluate_retrieval(task, protocol, task_cfg.vpr, device, vpr_dir(run_dir, data_cfg.name),
+                                 model_id(run_dir / "phase2" / "best.pt"), data_cfg.val_batch_size,
+                                 trainer_cfg.num_workers)
         result = {**out["metrics"], **result}  # recall keys at the top, as the cross-view runner returns them
         print_recall(out["metrics"], f"MMDIP retrieval, {data_cfg.split} split, L={task_cfg.vpr.levels}")
         (run_dir / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -130,12 +139,14 @@ def _fmt(metrics: dict) -> str:
 
 
 def print_recall(metrics: dict, title: str) -> None:
-    print(f"\n{title} ({metrics['num_queries']} queries)")
+    print(f"\n{title} ({metrics['num_queries']} queries; vocabulary from the {metrics['vocabulary_source']}, "
+          f"gallery SPM from the {metrics['gallery_seg']} segmentation)")
     rows = [("BoW+SPM", ""), ("BoW", "BoW/"), ("SPM", "SPM/"), ("dynamic image BoW", "dynamic-BoW/")]
     keys = [k for k in metrics if k.startswith("R@")]
     print("| method | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
     for name, prefix in rows:
         print(f"| {name} | " + " | ".join(f"{metrics[prefix + k]:.4f}" for k in keys) + " |")
+    print("recovered queries against their static views: " + _fmt({k: metrics[k] for k in IMAGE_KEYS}))
 
 
 def _merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:
@@ -148,47 +159,53 @@ def _merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictCon
     return OmegaConf.create(section)
 
 
-@torch.no_grad()
-def evaluate(cfg: DictConfig, ckpt_path, metrics_out=None) -> dict:
-    """Score a phase-2 (or phase-1) checkpoint. dataset=emptycities: L1, L2, PSNR, SSIM; dataset=dynamic:
-    recall keys + num_queries (artefacts reused from the run's vpr/ folder); a phase-1 checkpoint: PA, MPA,
-    MIoU, FWIoU. Writes the JSON to `metrics_out` when given."""
-    ckpt_path = Path(ckpt_path)
+def load_task(ckpt_path: Path) -> tuple[JointTask | SegmentationTask, MMDIPConfig, DictConfig]:
+    """(task with the checkpoint's weights, its task config, its stored config): a JointTask for a phase-2
+    checkpoint, a SegmentationTask for a phase-1 one."""
     state = ckpt_io.load(ckpt_path)
     stored = OmegaConf.create(state["config"])
     task_cfg = checked(stored.task, MMDIPConfig, "task")
-    data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
-    device = dist.init_from_env(cfg.get("device", "auto"))
     uniform = [1.0 / task_cfg.num_classes] * task_cfg.num_classes  # the stored class weights replace these
-    is_joint = any(k.startswith("generator.") for k in state["task"])
-    task = JointTask(task_cfg, uniform, training=False) if is_joint else SegmentationTask(task_cfg.segmentation,
-                                                                          task_cfg.num_classes, uniform)
+    if any(k.startswith("generator.") for k in state["task"]):
+        task = JointTask(task_cfg, uniform, training=False)
+    else:
+        task = SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, uniform)
     task.load_state_dict(state["task"])
-    task.eval().to(device)
-    root = dataset_root(data_cfg)
-    dataset = build_split(data_cfg, root, data_cfg.split, train=False)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=data_cfg.val_batch_size)
+    return task.eval(), task_cfg, stored
 
-    if not is_joint:
+
+@torch.no_grad()
+def evaluate(cfg: DictConfig, ckpt_path, metrics_out=None) -> dict:
+    """Score a phase-2 (or phase-1) checkpoint on the dataset asked for (default: the run's own).
+
+    Phase 2, every reader (dynamic, carla4, emptycities): the place protocol of protocol.py, so the recall keys
+    + num_queries, the BoW / SPM / dynamic-BoW rows, and L1 / L2 / PSNR / SSIM of the recovered queries against
+    their static views; artefacts are reused from the run's vpr/ folder (vpr_dir). Phase 1: PA, MPA, MIoU, FWIoU
+    (needs labels). Writes the JSON to `metrics_out` when given."""
+    ckpt_path = Path(ckpt_path)
+    task, task_cfg, stored = load_task(ckpt_path)
+    data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
+    is_joint = isinstance(task, JointTask)
+    if not is_joint and data_cfg.name == "emptycities":
+        raise ConfigError(f"{ckpt_path} is a phase-1 (segmentation) checkpoint: it is scored against labels, and "
+                          f"dataset=emptycities has none. Evaluate phase2/best.pt there, or a phase-1 checkpoint "
+                          f"on dataset=dynamic or dataset=carla4")
+    device = dist.init_from_env(cfg.get("device", "auto"))
+    task.to(device)
+    root = dataset_root(data_cfg)
+
+    if is_joint:
+        protocol = place_protocol(data_cfg.name, root, data_cfg.split, data_cfg.image_size)
+        metrics = evaluate_retrieval(task, protocol, task_cfg.vpr, device,
+                                     vpr_dir(ckpt_path.resolve().parent.parent, data_cfg.name), model_id(ckpt_path),
+                                     data_cfg.val_batch_size)["metrics"]
+        print_recall(metrics, f"MMDIP retrieval, {data_cfg.name} {data_cfg.split or ''}, ckpt {ckpt_path}")
+    else:
+        dataset = build_split(data_cfg, root, data_cfg.split, train=False)
+        loader = torch.utils.data.DataLoader(dataset, batch_size=data_cfg.val_batch_size)
         conf = sum(batch_confusion(task.seg(b["dynamic"].to(device)).argmax(1), b["label"].to(device),
                                    task.num_classes).sum(0) for b in loader)
         metrics = confusion_metrics(conf[None])
-    elif data_cfg.name == "dynamic":
-        artefacts = ckpt_path.resolve().parent.parent / "vpr"
-        metrics = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device,
-                                     artefacts, model_id(ckpt_path), data_cfg.val_batch_size)["metrics"]
-        print_recall(metrics, f"MMDIP retrieval, {data_cfg.split} split, ckpt {ckpt_path}")
-    else:
-        sums, n = {}, 0
-        for b in loader:
-            _, fake = task.translate(b["dynamic"].to(device), b["mask"].to(device))
-            scores = image_scores_per_image((fake.float().clamp(-1, 1) + 1) / 2, b["static"].to(device))
-            for k, v in scores.items():
-                sums[k] = sums.get(k, 0.0) + float(v.sum())
-            n += len(b["dynamic"])
-        metrics = {k: v / n for k, v in sums.items()}
-        metrics["num_images"] = n
-        print(f"{data_cfg.name} {data_cfg.split or ''}: " + _fmt(metrics))
     if metrics_out:
         out = Path(metrics_out)
         out.parent.mkdir(parents=True, exist_ok=True)

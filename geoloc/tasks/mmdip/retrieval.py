@@ -2,9 +2,11 @@
 
 Query (a dynamic image): segmentation -> static map M (SPM) and, through the generator, the recovered static
 image (ORB BoW). Reference (a static landmark image): its static image (BoW) and its segmentation (SPM; predicted
-from the static image, or the ground-truth labels with vpr.gallery_seg=label). The vocabulary is learned on the
-training split's static images. Vocabulary and reference codes are saved artefacts in `artefact_dir` and reused.
-References are reordered so reference[i] is query i's place, the order recall_at_k expects.
+from the static image, or the ground-truth labels with vpr.gallery_seg=label where the reader has labels).
+Which images are queries and references, and where the vocabulary comes from: protocol.py, per reader.
+Vocabulary and reference codes are saved artefacts in `artefact_dir` and reused. References are reordered so
+reference[i] is query i's place, the order recall_at_k expects. The recovered query images are also scored
+against their own static view (L1, L2, PSNR, SSIM: Table II's scores), which every reader has.
 """
 
 from __future__ import annotations
@@ -18,10 +20,11 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from geoloc.data.dynamic import DynamicDataset
+from geoloc.eval.image import image_scores_per_image
 from geoloc.eval.recall import recall_at_k, retrieval_ranks
 from geoloc.tasks.mmdip.config import VPRConfig
 from geoloc.tasks.mmdip.networks import generator_input
+from geoloc.tasks.mmdip.protocol import FROM_TRAIN, PlaceProtocol, describe
 from geoloc.vpr import Gallery, ORBExtractor, Vocabulary, fused_descriptors, spm_encode
 
 
@@ -62,10 +65,12 @@ def _loader(dataset, batch_size: int, num_workers: int) -> DataLoader:
 
 
 @torch.no_grad()
-def _run_queries(task, loader, device) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
-    """Dynamic images -> (recovered static uint8, M maps, places, input images, per-query seconds per stage)."""
+def _run_queries(task, loader, device) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict, dict]:
+    """Dynamic images -> (recovered static uint8, M maps, places, input images, per-query seconds per stage,
+    mean image scores of the recovered images against the static views)."""
     recovered, segs, places, dynamic, static = [], [], [], [], []
     seconds = {"segmentation": 0.0, "translation": 0.0}
+    score_sums: dict[str, float] = {}
     for batch in loader:
         dyn = batch["dynamic"].to(device)
         t0 = time.perf_counter()
@@ -76,6 +81,9 @@ def _run_queries(task, loader, device) -> tuple[np.ndarray, np.ndarray, np.ndarr
         _sync(device)
         seconds["segmentation"] += t1 - t0
         seconds["translation"] += time.perf_counter() - t1
+        scores = image_scores_per_image((fake.float().clamp(-1, 1) + 1) / 2, batch["static"].to(device))
+        for k, v in scores.items():
+            score_sums[k] = score_sums.get(k, 0.0) + float(v.sum())
         recovered.append(to_uint8((fake.float() + 1) / 2))
         segs.append(logits.argmax(1).byte().cpu().numpy())
         places.append(batch["place"].numpy())
@@ -84,7 +92,7 @@ def _run_queries(task, loader, device) -> tuple[np.ndarray, np.ndarray, np.ndarr
     n = sum(len(p) for p in places)
     inputs = {"dynamic": np.concatenate(dynamic), "static": np.concatenate(static)}
     return (np.concatenate(recovered), np.concatenate(segs), np.concatenate(places), inputs,
-            {k: v / n for k, v in seconds.items()})
+            {k: v / n for k, v in seconds.items()}, {k: v / n for k, v in score_sums.items()})
 
 
 @torch.no_grad()
@@ -126,6 +134,17 @@ def recall(q_bow, q_spm, r_bow, r_spm, alpha: float, ks) -> tuple[dict, torch.Te
     return recall_at_k(q, r, ks=ks), retrieval_ranks(q, r)
 
 
+def retrieval_metrics(q_bow, q_spm, r_bow, r_spm, cfg: VPRConfig) -> tuple[dict, dict]:
+    """The MMDIP recall (eq. 5 at cfg.alpha: R@K, R@1%) and each cue alone (BoW/R@K: alpha 1, SPM/R@K: alpha 0)
+    of codes whose reference row i is query i's place. Returns (metrics, ranks per method)."""
+    ks, metrics, ranks = tuple(cfg.ks), {}, {}
+    metrics, ranks["BoW+SPM"] = recall(q_bow, q_spm, r_bow, r_spm, cfg.alpha, ks)
+    for name, alpha in (("BoW", 1.0), ("SPM", 0.0)):
+        m, ranks[name] = recall(q_bow, q_spm, r_bow, r_spm, alpha, ks)
+        metrics.update({f"{name}/{k}": v for k, v in m.items()})
+    return metrics, ranks
+
+
 def _reusable(path: Path, meta: dict) -> bool:
     """An artefact is reused only when it was made with the same settings (and the same model)."""
     manifest = path.with_suffix(".json")
@@ -142,50 +161,59 @@ def model_id(ckpt: Path) -> str:
     return f"{ckpt}@{ckpt.stat().st_mtime_ns}"
 
 
-def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, device, artefact_dir: Path,
-                       model: str, batch_size: int = 8, num_workers: int = 0, extra_levels=(), log=print) -> dict:
-    """Fused retrieval on `split` of a `dynamic` layout; returns metrics, ranks and per-query timings.
+def evaluate_retrieval(task, protocol: PlaceProtocol, cfg: VPRConfig, device, artefact_dir: Path, model: str,
+                       batch_size: int = 8, num_workers: int = 0, extra_levels=(), log=print) -> dict:
+    """Fused retrieval under `protocol` (protocol.place_protocol); returns metrics, ranks and examples.
 
     `model` identifies the weights (model_id of the checkpoint): a saved gallery is reused only for the same
-    weights and settings, the vocabulary for the same ORB / vocabulary settings.
+    weights and settings, the vocabulary for the same images and ORB / vocabulary settings.
     Keys: R@K / R@1% / num_queries (BoW + SPM at cfg.levels), BoW/R@K (recovered image only), SPM/R@K,
     dynamic-BoW/R@K (the raw dynamic query, no recovery), L{l}/R@K and L{l}/coding_ms for `extra_levels`,
-    ms/<stage> per query.
+    ms/<stage> per query, L1 / L2 / PSNR / SSIM and num_images (recovered queries against their static views),
+    and two strings that say how the numbers were made: gallery_seg and vocabulary_source.
     """
     artefact_dir = Path(artefact_dir)
     artefact_dir.mkdir(parents=True, exist_ok=True)
     task.eval().to(device)
+    log(f"place protocol: {describe(protocol)}")
     coder = Coder(cfg, task.num_classes)
     vocab_path = artefact_dir / "vocabulary.npz"
-    vocab_meta = {"root": str(Path(root).resolve()), "image_size": list(image_size),
+    vocab_meta = {"dataset": protocol.name, "root": str(protocol.root.resolve()),
+                  "image_size": list(protocol.image_size), "vocabulary_source": protocol.vocabulary_source,
                   **{k: getattr(cfg, k) for k in ("vocab_size", "vocab_iters", "orb_features", "orb_patch_size",
                                                   "orb_fast_threshold")}}
+    if protocol.vocabulary_source != FROM_TRAIN:
+        vocab_meta["split"] = protocol.split  # the gallery's own images
     if _reusable(vocab_path, vocab_meta):
         coder.vocab = Vocabulary.load(vocab_path)
     else:
-        train_set = DynamicDataset(root, "train", image_size=image_size, check="off")
-        imgs = [to_uint8(train_set[i]["static"][None])[0] for i in range(len(train_set))]
+        images = protocol.vocabulary
+        imgs = [to_uint8(images[i]["static"][None])[0] for i in range(len(images))]
         coder.fit_vocabulary(imgs).save(vocab_path)
         _mark(vocab_path, vocab_meta)
-        log(f"vocabulary: {coder.vocab.size} words from {len(imgs)} training static images -> {vocab_path}")
+        log(f"vocabulary: {coder.vocab.size} words from {len(imgs)} static images of the "
+            f"{protocol.vocabulary_source} -> {vocab_path}")
 
-    gallery_path = artefact_dir / f"gallery_{split}_{cfg.gallery_seg}.npz"
-    seg_path = artefact_dir / f"gallery_{split}_{cfg.gallery_seg}_seg.npy"
-    gallery_meta = {**vocab_meta, "split": split, "gallery_seg": cfg.gallery_seg, "levels": cfg.levels,
-                    "model": model if cfg.gallery_seg == "predicted" else None}
+    gallery_seg = cfg.gallery_seg if protocol.has_labels else "predicted"
+    if gallery_seg != cfg.gallery_seg:
+        log(f"vpr.gallery_seg=label: dataset={protocol.name} has no segmentation labels, so the gallery's SPM "
+            f"codes the predicted static segmentation of each reference image")
+    stem = f"gallery_{protocol.split or 'all'}_{gallery_seg}"
+    gallery_path, seg_path = artefact_dir / f"{stem}.npz", artefact_dir / f"{stem}_seg.npy"
+    gallery_meta = {**vocab_meta, "split": protocol.split, "gallery_seg": gallery_seg, "levels": cfg.levels,
+                    "model": model if gallery_seg == "predicted" else None}
     if _reusable(gallery_path, gallery_meta) and seg_path.is_file():
         gallery, ref_segs = Gallery.load(gallery_path), np.load(seg_path)
     else:
-        refs = DynamicDataset(root, split, image_size=image_size, roles=("reference",), check="off")
-        ref_imgs, ref_segs, ref_places = _run_references(task, _loader(refs, batch_size, num_workers), device,
-                                                         cfg.gallery_seg == "label")
+        ref_imgs, ref_segs, ref_places = _run_references(
+            task, _loader(protocol.references, batch_size, num_workers), device, gallery_seg == "label")
         gallery = Gallery(coder.bow(ref_imgs), coder.spm(ref_segs, cfg.levels), ref_places, cfg.levels)
         gallery.save(gallery_path)
         np.save(seg_path, ref_segs)
         _mark(gallery_path, gallery_meta)
-        log(f"gallery: {len(ref_places)} references of split '{split}' -> {gallery_path}")
-    queries = DynamicDataset(root, split, image_size=image_size, roles=("query",), check="off")
-    rec, q_segs, q_places, q_inputs, seconds = _run_queries(task, _loader(queries, batch_size, num_workers), device)
+        log(f"gallery: {len(ref_places)} references of split '{protocol.split}' -> {gallery_path}")
+    rec, q_segs, q_places, q_inputs, seconds, image_scores = _run_queries(
+        task, _loader(protocol.queries, batch_size, num_workers), device)
     t0 = time.perf_counter()
     q_bow = coder.bow(rec)
     t1 = time.perf_counter()
@@ -197,15 +225,10 @@ def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, devic
 
     ks = tuple(cfg.ks)
     t3 = time.perf_counter()
-    metrics, ranks = {}, {}
-    fused, ranks["BoW+SPM"] = recall(q_bow, q_spm, r_bow, r_spm, cfg.alpha, ks)
-    seconds["retrieval"] = (time.perf_counter() - t3) / n
+    metrics, ranks = retrieval_metrics(q_bow, q_spm, r_bow, r_spm, cfg)
+    seconds["retrieval"] = (time.perf_counter() - t3) / n / 3  # three recalls of one size: fused, BoW, SPM
     seconds["bow_coding"], seconds["spm_coding"] = (t1 - t0) / n, (t2 - t1) / n
-    metrics.update(fused)
     metrics["num_queries"] = n
-    for name, alpha in (("BoW", 1.0), ("SPM", 0.0)):
-        m, ranks[name] = recall(q_bow, q_spm, r_bow, r_spm, alpha, ks)
-        metrics.update({f"{name}/{k}": v for k, v in m.items()})
     m, ranks["dynamic-BoW"] = recall(coder.bow(q_inputs["dynamic"]), q_spm, r_bow, r_spm, 1.0, ks)
     metrics.update({f"dynamic-BoW/{k}": v for k, v in m.items()})
     for lvl in extra_levels:
@@ -216,6 +239,9 @@ def evaluate_retrieval(task, root, split: str, image_size, cfg: VPRConfig, devic
         metrics.update({f"L{lvl}/{k}": v for k, v in m.items()})
         metrics[f"L{lvl}/coding_ms"] = ms
     metrics.update({f"ms/{k}": v * 1e3 for k, v in seconds.items()})
-    (artefact_dir / f"metrics_{split}.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    metrics.update(image_scores)
+    metrics["num_images"] = n
+    metrics.update(gallery_seg=gallery_seg, vocabulary_source=protocol.vocabulary_source)
+    (artefact_dir / f"metrics_{protocol.split or 'all'}.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return {"metrics": metrics, "ranks": ranks,
             "examples": {**q_inputs, "recovered": rec, "seg": q_segs, "places": q_places}}

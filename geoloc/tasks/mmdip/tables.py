@@ -3,7 +3,8 @@
     python -m geoloc.tasks.mmdip.tables --out DIR [--tables I II III IV] [hydra overrides ...]
 
   Table I    phase 1 for ERFNet, FCN and U-Net: per-class IoU, PA, MPA, MIoU, FWIoU, parameter counts
-  Table II   phase 2 for pix2pix, MGAN, SSGGNet, SSGGNet-SM: L1, L2, PSNR, SSIM on the validation split
+  Table II   phase 2 for pix2pix, MGAN, SSGGNet, SSGGNet-SM: L1, L2, PSNR, SSIM on the validation split.
+             MGAN is given the ground-truth dynamic mask at test time, an oracle: its rows say "oracle mask".
   Table III  R@1/5/10/1% of each generator + BoW, of the raw dynamic image + BoW, of SPM alone and of the full
              SSGGNet BoW + SPM; recall curves (Fig. 4) in recall_curves.png
   Table IV   SSGGNet BoW + SPM at pyramid levels L = 0, 2, 4, 6: recall and per-query coding time
@@ -11,7 +12,9 @@
              qualitative_variants.png (Fig. 3: dynamic | pix2pix | MGAN | SSGGNet-SM | SSGGNet | ground truth)
 
 Each table is written as DIR/table_<n>.md and DIR/table_<n>.json. Phase 2 of every variant starts from the
-ERFNet phase-1 checkpoint, so Tables II and III compare generators on one segmentation network.
+ERFNet phase-1 checkpoint, so Tables II and III compare generators on one segmentation network. Retrieval follows
+the place protocol of the dataset's reader (protocol.py). SRMGAN, a row of the paper's Tables II-III, is not
+implemented (docs/mmdip.md says why).
 """
 
 from __future__ import annotations
@@ -35,19 +38,31 @@ from geoloc.data.dynamic import STATIC_CLASSES, load_class_fractions  # noqa: E4
 from geoloc.data.synthetic.classes import colorize  # noqa: E402
 from geoloc.eval.figures import _grid, _save  # noqa: E402
 from geoloc.tasks.mmdip.pipeline import build_split, dataset_root, parse, run_phase1, run_phase2  # noqa: E402
+from geoloc.tasks.mmdip.protocol import place_protocol  # noqa: E402
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id  # noqa: E402
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
 SEGMENTERS = {"erfnet": "ERFNet", "fcn": "FCN-8s (small)", "unet": "U-Net"}
-VARIANTS = {"pix2pix": "pix2pix", "mgan": "MGAN", "ssggnet_sm": "SSGGNet-SM", "ssggnet": "SSGGNet"}
+# MGAN reads the ground-truth dynamic-object mask at test time (networks.generator_input): an oracle input no
+# other row gets, so every table and figure that shows it says so.
+VARIANTS = {"pix2pix": "pix2pix", "mgan": "MGAN (oracle mask)", "ssggnet_sm": "SSGGNet-SM", "ssggnet": "SSGGNet"}
+ORACLE_VARIANTS = ("mgan",)
+ORACLE_NOTE = ("MGAN (oracle mask) is given the ground-truth dynamic-object mask at test time; the other rows see "
+               "the dynamic image only.")
 LEVELS = (0, 2, 4, 6)
 RECALL_KEYS = ("R@1", "R@5", "R@10", "R@1%")
 
 
-def write_table(out: Path, name: str, title: str, header: list[str], rows: list[list], data) -> str:
+def oracle_note(variants) -> str:
+    return ORACLE_NOTE if set(variants) & set(ORACLE_VARIANTS) else ""
+
+
+def write_table(out: Path, name: str, title: str, header: list[str], rows: list[list], data,
+                note: str = "") -> str:
     fmt = lambda v: f"{v:.4f}" if isinstance(v, float) else str(v)
     lines = [f"### {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
+    lines += ["", note] if note else []
     text = "\n".join(lines) + "\n"
     (out / f"{name}.md").write_text(text)
     (out / f"{name}.json").write_text(json.dumps(data, indent=2) + "\n")
@@ -67,15 +82,17 @@ def table_1(results: dict, out: Path) -> None:
 
 def table_2(results: dict, out: Path) -> None:
     rows = [[VARIANTS[v], *(r[k] for k in ("L1", "L2", "PSNR", "SSIM"))] for v, r in results.items()]
+    results = {v: {**r, "oracle_mask": True} if v in ORACLE_VARIANTS else r for v, r in results.items()}
     write_table(out, "table_2", "Table II: static image recovery (validation split; L2 = mean squared error)",
-                ["generator", "L1", "L2", "PSNR (dB)", "SSIM"], rows, results)
+                ["generator", "L1", "L2", "PSNR (dB)", "SSIM"], rows, results, oracle_note(results))
 
 
 def table_3(vpr: dict, out: Path) -> None:
     rows, data = [], {}
     for v, m in vpr.items():
-        data[f"{v}-BoW"] = {k: m[f"BoW/{k}"] for k in RECALL_KEYS}
-        rows.append([f"{VARIANTS[v]} + BoW", *data[f"{v}-BoW"].values()])
+        recall = {k: m[f"BoW/{k}"] for k in RECALL_KEYS}
+        rows.append([f"{VARIANTS[v]} + BoW", *recall.values()])
+        data[f"{v}-BoW"] = {**recall, "oracle_mask": True} if v in ORACLE_VARIANTS else recall
     ref = vpr["ssggnet"]
     for key, label, prefix in (("dynamic-BoW", "dynamic image + BoW (no recovery)", "dynamic-BoW/"),
                                ("SPM", "static segmentation SPM alone", "SPM/"),
@@ -84,7 +101,7 @@ def table_3(vpr: dict, out: Path) -> None:
         rows.append([label, *data[key].values()])
     data["num_queries"] = ref["num_queries"]
     write_table(out, "table_3", f"Table III: place recognition, {ref['num_queries']} queries (L = 2, alpha = 0.5)",
-                ["method", *RECALL_KEYS], rows, data)
+                ["method", *RECALL_KEYS], rows, data, oracle_note(vpr))
 
 
 def table_4(metrics: dict, out: Path) -> None:
@@ -126,6 +143,7 @@ def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:
     (out / "config.yaml").write_text(yaml)
     root = dataset_root(data_cfg)
     fractions = load_class_fractions(root, data_cfg.name)
+    protocol = place_protocol(data_cfg.name, root, data_cfg.split, data_cfg.image_size)
     train_set = build_split(data_cfg, root, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = build_split(data_cfg, root, "val", train=False)
     summary = {}
@@ -154,9 +172,8 @@ def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:
         if v != variants[0]:  # one vocabulary for every generator
             for name in ("vocabulary.npz", "vocabulary.json"):
                 shutil.copy(out / f"vpr_{variants[0]}" / name, art / name)
-        res = evaluate_retrieval(task, root, data_cfg.split, data_cfg.image_size, task_cfg.vpr, device, art,
-                                 model_id(out / f"phase2_{v}" / "best.pt"), data_cfg.val_batch_size,
-                                 extra_levels=LEVELS if v == "ssggnet" else ())
+        res = evaluate_retrieval(task, protocol, task_cfg.vpr, device, art, model_id(out / f"phase2_{v}" / "best.pt"),
+                                 data_cfg.val_batch_size, extra_levels=LEVELS if v == "ssggnet" else ())
         vpr[v], examples[v] = res["metrics"], res["examples"]
         ranks[f"{VARIANTS[v]} + BoW"] = res["ranks"]["BoW"]
         if v == "ssggnet":

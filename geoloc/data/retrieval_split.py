@@ -1,0 +1,100 @@
+"""One split of a retrieval dataset where a query may match any reference, not just reference i.
+
+The one-to-one datasets (CVUSA, CVACT) are the special case positives = arange(Q). VIGOR adds semi-positives
+(references that contain the query's location off centre) and GPS; University-1652 adds labels (every image of
+the query's building is relevant). The conventions of the metrics that read these fields are in DESIGN.md
+("Retrieval with positives").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RetrievalSplit:
+    """name: e.g. "vigor/same_area/test"; root: the dataset folder the paths were read from.
+
+    queries (Q paths), references (N paths);
+    positives (Q,) int: each query's positive reference index;
+    semi_positives (Q, S) int or None: further references that hold the query's place, -1 for none;
+    query_latlon (Q, 2), reference_latlon (N, 2) float degrees or None (VIGOR: from the file names);
+    query_labels (Q,), reference_labels (N,) int or None: place / building ids, given together; a reference is
+    relevant to a query when their labels are equal (University-1652's AP counts all of them).
+    """
+
+    name: str
+    root: Path
+    queries: list
+    references: list
+    positives: np.ndarray
+    semi_positives: np.ndarray | None = None
+    query_latlon: np.ndarray | None = None
+    reference_latlon: np.ndarray | None = None
+    query_labels: np.ndarray | None = None
+    reference_labels: np.ndarray | None = None
+
+    def __post_init__(self):
+        put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731  (frozen: set once, here)
+        put("root", Path(self.root))
+        put("queries", [Path(p) for p in self.queries])
+        put("references", [Path(p) for p in self.references])
+        q, n = len(self.queries), len(self.references)
+        if q == 0 or n == 0:
+            raise ValueError(f"{self._where()} has {q} queries and {n} references; both must be at least 1")
+        put("positives", self._ints("positives", self.positives, (q,), 0, n))
+        if self.semi_positives is not None:
+            semi = np.asarray(self.semi_positives)
+            shape = (q, semi.shape[1] if semi.ndim == 2 else 0)
+            put("semi_positives", self._ints("semi_positives", semi, shape, -1, n))
+        for key, rows in (("query_latlon", q), ("reference_latlon", n)):
+            if getattr(self, key) is not None:
+                put(key, self._latlon(key, getattr(self, key), rows))
+        if (self.query_labels is None) != (self.reference_labels is None):
+            raise ValueError(f"{self._where()}: give query_labels and reference_labels together, or neither")
+        if self.query_labels is not None:
+            put("query_labels", self._ints("query_labels", self.query_labels, (q,), None, None))
+            put("reference_labels", self._ints("reference_labels", self.reference_labels, (n,), None, None))
+            wrong = np.flatnonzero(self.reference_labels[self.positives] != self.query_labels)
+            if len(wrong):
+                i = int(wrong[0])
+                raise ValueError(f"{self._where()}: query {i} ({self.queries[i]}) has label {self.query_labels[i]} "
+                                 f"but its positive reference {self.positives[i]} has label "
+                                 f"{self.reference_labels[self.positives[i]]} ({len(wrong)} such queries)")
+
+    @property
+    def num_queries(self) -> int:
+        return len(self.queries)
+
+    @property
+    def num_references(self) -> int:
+        return len(self.references)
+
+    def _where(self) -> str:
+        return f"RetrievalSplit {self.name!r} (root {self.root})"
+
+    def _ints(self, key: str, value, shape: tuple, low: int | None, high: int | None) -> np.ndarray:
+        """An int64 array of the given shape with values in [low, high); a clear error otherwise."""
+        a = np.asarray(value)
+        if a.shape != shape:
+            raise ValueError(f"{self._where()}: {key} has shape {a.shape}, expected {shape}")
+        if a.size and not np.issubdtype(a.dtype, np.integer):
+            raise ValueError(f"{self._where()}: {key} must hold integers, got dtype {a.dtype}")
+        a = a.astype(np.int64)
+        if a.size and low is not None and (a.min() < low or a.max() >= high):
+            bad = int(np.flatnonzero((a < low) | (a >= high))[0]) // max(1, int(np.prod(shape[1:])))
+            raise ValueError(f"{self._where()}: {key} must lie in [{low}, {high}) (the reference indices"
+                             f"{', -1 for none' if low == -1 else ''}); query {bad} has {a[bad].tolist()}")
+        return a
+
+    def _latlon(self, key: str, value, rows: int) -> np.ndarray:
+        a = np.asarray(value, np.float64)
+        if a.shape != (rows, 2):
+            raise ValueError(f"{self._where()}: {key} has shape {a.shape}, expected ({rows}, 2) of (lat, lon)")
+        ok = np.isfinite(a).all(1) & (np.abs(a[:, 0]) <= 90) & (np.abs(a[:, 1]) <= 180)
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            raise ValueError(f"{self._where()}: {key} row {i} = {a[i].tolist()} is not a (lat, lon) in degrees")
+        return a

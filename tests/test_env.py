@@ -11,11 +11,11 @@ import pytest
 import scipy
 import torch
 import torchvision
+from toy_task import Points, ScriptedRecall
 
-from geoloc.engine import Task, Trainer, TrainerConfig
+from geoloc.engine import Trainer, TrainerConfig
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import env as env_mod
-from geoloc.engine.sampling import split_key
 
 
 def test_versions_match_what_the_modules_report():
@@ -48,32 +48,9 @@ def test_an_absent_package_is_none_and_shown_as_a_dash(monkeypatch):
     assert f"torch {torch.__version__}" in line and "nope -" in line
 
 
-class _LineFit(Task):
-    """y = 2x on 8 points: just enough task for one epoch of fit()."""
-
-    def __init__(self):
-        super().__init__()
-        self.linear = torch.nn.Linear(1, 1)
-
-    def configure_optimizers(self):
-        return [torch.optim.SGD(self.parameters(), lr=0.1)], []
-
-    def training_step(self, batch, engine):
-        return {"loss": torch.nn.functional.mse_loss(self.linear(batch["x"]), 2 * batch["x"])}
-
-
-class _Points(torch.utils.data.Dataset):
-    def __len__(self):
-        return 8
-
-    def __getitem__(self, key):  # the trainer's sampler yields (index, epoch) keys
-        return {"x": torch.tensor([float(split_key(key)[0])])}
-
-
 def test_fit_prints_the_environment_and_keeps_it_in_env_json_and_the_checkpoint(tmp_path, capsys):
-    data = _Points()
     cfg = TrainerConfig(max_epochs=1, device="cpu", progress=False, persistent_workers=False)
-    Trainer(cfg, tmp_path).fit(_LineFit(), data, None, batch_size=4)
+    Trainer(cfg, tmp_path).fit(ScriptedRecall(), Points(), None, batch_size=2)
     saved = json.loads((tmp_path / "env.json").read_text())
     assert saved == env_mod.environment()
     assert ckpt_io.load(tmp_path / "last.pt")["environment"] == saved

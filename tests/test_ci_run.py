@@ -23,8 +23,8 @@ def _ci(tmp_path, pip_rc: int, pytest_rc: int) -> subprocess.CompletedProcess:
     for name, rc in (("pip", pip_rc), ("pytest", pytest_rc)):
         (stubs / name).write_text(f'#!/bin/sh\necho "STUB {name} $*"\nexit {rc}\n')
         (stubs / name).chmod(0o755)
-    env = {**os.environ, "PATH": f"{stubs}{os.pathsep}{os.path.dirname(sys.executable)}{os.pathsep}{os.environ['PATH']}",
-           "PYTHONPATH": str(REPO)}
+    path = os.pathsep.join([str(stubs), os.path.dirname(sys.executable), os.environ["PATH"]])  # stubs, then this venv
+    env = {**os.environ, "PATH": path, "PYTHONPATH": str(REPO)}
     return subprocess.run(["bash", str(repo / ".ci" / "run")], env=env, capture_output=True, text=True, timeout=120)
 
 

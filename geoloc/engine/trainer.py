@@ -24,6 +24,7 @@ from tqdm import tqdm
 import geoloc
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
+from geoloc.engine.env import record_environment
 from geoloc.engine.logging import RunLogger
 from geoloc.engine.sampling import EpochSampler
 from geoloc.engine.task import Task
@@ -176,6 +177,7 @@ class Trainer:
             "config": self.config_yaml,
             "rng": ckpt_io.rng_state(),
             "geoloc_version": geoloc.__version__,
+            "environment": self.environment,  # versions and thread count: what makes the figures reproducible
         }
 
     def _restore(self, path: Path, task: Task, optimizers, schedulers) -> None:
@@ -196,6 +198,7 @@ class Trainer:
     def fit(self, task: Task, train_set: Dataset, val_set: Dataset | None, batch_size: int,
             val_batch_size: int | None = None, resume: str | Path | None = None) -> dict[str, float]:
         """Train `task`; return the metrics of the best validation (or of the last epoch without validation)."""
+        self.environment = record_environment(self.run_dir)
         task.to(self.device)
         if self.cfg.channels_last:
             task.to(memory_format=torch.channels_last)

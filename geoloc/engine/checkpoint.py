@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from geoloc.config import ConfigError
+
 
 def save_atomic(obj: dict, path: str | Path) -> None:
     """Write to a temp file in the same folder, fsync, then rename: a kill never leaves a half-written file."""
@@ -51,6 +53,28 @@ def umask() -> int:
     current = os.umask(0o022)
     os.umask(current)
     return current
+
+
+def load_task_state(task: torch.nn.Module, state: dict, path, fresh: tuple[str, ...] = (),
+                    hint: str = "Was it written by another task or an edited config?") -> None:
+    """load_state_dict with an error naming the checkpoint and the keys when its network doesn't match `task`.
+
+    Keys starting with a prefix in `fresh` are neither loaded nor checked: they keep `task`'s own values.
+    """
+    own = {k: v for k, v in task.state_dict().items() if not k.startswith(fresh)}
+    saved = {k: v for k, v in state["task"].items() if not k.startswith(fresh)}
+    missing = [k for k in own if k not in saved]
+    unexpected = [k for k in saved if k not in own]
+    shapes = [f"{k}: ckpt {tuple(saved[k].shape)} vs model {tuple(v.shape)}"
+              for k, v in own.items() if k in saved and saved[k].shape != v.shape]
+    if missing or unexpected or shapes:
+        found = [f"mis-shaped {shapes[:4]}" if shapes else "", f"missing {missing[:4]}" if missing else "",
+                 f"unexpected {unexpected[:4]}" if unexpected else ""]
+        raise ConfigError(
+            f"checkpoint {path} does not match the model built from its config: {len(missing)} missing, "
+            f"{len(unexpected)} unexpected, {len(shapes)} mis-shaped tensors ({'; '.join(f for f in found if f)}). "
+            f"{hint}")
+    task.load_state_dict(saved, strict=not fresh)
 
 
 def rng_state() -> dict[str, Any]:

@@ -51,6 +51,20 @@ def test_a_second_run_is_refused_while_the_first_holds_the_dir_and_a_killed_run_
         assert f"pid {os.getpid()} " in (run_dir / LOCK).read_text()
 
 
+def test_ranks_above_zero_share_rank_zeros_dir_without_claiming_it(tmp_path, monkeypatch):
+    # SLURM tasks of one job (hydra/launcher=slurm_gpu) all get the job's run dir; rank 0 holds it
+    run_dir = tmp_path / "run"
+    holder = hold_in_subprocess(run_dir)
+    try:
+        monkeypatch.setenv("SLURM_NTASKS", "4")
+        monkeypatch.setenv("SLURM_PROCID", "1")
+        with claimed(run_dir) as path:
+            assert path == run_dir
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+
+
 def test_a_dir_with_a_finished_run_is_refused_unless_ckpt_resumes_it(finished_run, tmp_path):
     root, finished = finished_run
     before = (finished / "last.pt").read_bytes()

@@ -15,7 +15,7 @@ from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import resume
 from geoloc.tasks.crossview import CrossViewTask
-from geoloc.tasks.crossview_run import build_task
+from geoloc.tasks.crossview_run import INIT_FROM_FRESH, build_task
 
 
 def test_config_differences_skip_only_the_allow_list():
@@ -59,16 +59,17 @@ def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(fini
     # the weights arrive; the GMS queue (the source data's places) starts empty
     cfg = train_cfg(root, tmp_path / "x")
     task = build_task(cfg)
-    record = resume.init_from(task, source_path, tmp_path, fresh=("queue.",))
+    record = resume.init_from(task, source_path, tmp_path, fresh=INIT_FROM_FRESH)
     for key, value in task.state_dict().items():
         if not key.startswith("queue."):
             assert torch.equal(value, source["task"][key]), key
     assert (task.queue.ids == -1).all() and int(task.queue.ptr) == 0 and not task.queue.descriptors.any()
     assert record["sha256"] == hashlib.sha256(source_path.read_bytes()).hexdigest()
 
-    # a whole run: new lr, epoch 0, its own best, the source written down
+    # a whole run: new lr, another queue length, epoch 0, its own best, the source written down
     new = tmp_path / "new"
-    run.train(train_cfg(root, new, "trainer.max_epochs=1", "optim.lr=0.01", f"init_from={source_path}"))
+    run.train(train_cfg(root, new, "trainer.max_epochs=1", "optim.lr=0.01", "loss.queue_size=4",
+                        f"init_from={source_path}"))
     state = ckpt_io.load(new / "last.pt")
     assert state["epoch"] == 0 and state["global_step"] == 3
     assert state["optimizers"][0]["param_groups"][0]["lr"] == 0.01

@@ -3,6 +3,8 @@ checkpoints with the umask's mode, no stale temp files, no silent metrics_out ov
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
 import os
 import signal
@@ -49,6 +51,15 @@ def test_a_second_run_is_refused_while_the_first_holds_the_dir_and_a_killed_run_
         holder.wait()
     with claimed(run_dir):  # the OS dropped the killed holder's lock
         assert f"pid {os.getpid()} " in (run_dir / LOCK).read_text()
+
+
+def test_a_file_system_without_locks_gets_a_clear_error(tmp_path, monkeypatch):
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with pytest.raises(OSError, match=r"cannot lock run dir .*file system with locks"), claimed(tmp_path / "run"):
+        pass
 
 
 def test_ranks_above_zero_share_rank_zeros_dir_without_claiming_it(tmp_path, monkeypatch):
@@ -151,7 +162,7 @@ def test_train_py_refuses_a_taken_dir_before_hydra_writes_into_it_and_a_config_e
     assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_file() or p.name.startswith("20")]
 
 
-@pytest.mark.parametrize("mask,mode", [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)])
+@pytest.mark.parametrize("mask,mode", [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)], ids=["022", "027", "002"])
 def test_checkpoints_get_the_umask_mode(tmp_path, mask, mode):
     before = os.umask(mask)
     try:

@@ -99,6 +99,10 @@ def _lock_or_refuse(fd: int, run_dir: Path) -> None:
             f"run dir {run_dir} is in use by another live run ({holder}, per {run_dir / LOCK}). Two runs in one "
             f"folder would overwrite each other's checkpoints and interleave metrics.jsonl. Choose another "
             f"hydra.run.dir (or leave the default, which is unique), or wait for that run to end.") from None
+    except OSError as err:  # e.g. ENOLCK: a file system without locks
+        message = (f"cannot lock run dir {run_dir} ({err}): geoloc locks a run's folder so that no other run "
+                   f"writes into it. Choose a hydra.run.dir on a file system with locks (local disk, NFSv4).")
+        raise OSError(message) from err
 
 
 def _refuse_output(run_dir: Path, ckpt: str | None) -> None:

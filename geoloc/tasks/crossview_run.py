@@ -20,6 +20,8 @@ from geoloc.tasks.crossview_gallery import GalleryConfig
 
 # transform settings that must match what the network was trained on; evaluate always takes them from the ckpt
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
+# what an init_from= run does not take from its source: the GMS queue holds the source data's places and descriptors
+INIT_FROM_FRESH = ("queue.",)
 
 
 def build_task(cfg: DictConfig) -> CrossViewTask:
@@ -36,8 +38,8 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     seed_everything(trainer_cfg.seed)
     task = build_task(cfg)  # fails on a bad model/loss/optim config before any data is generated
     source = None
-    if cfg.get("init_from"):  # the GMS queue starts empty: its entries are the source run's places
-        source = resume.init_from(task, cfg.init_from, run_dir, fresh=("queue.",), write=dist.is_main())
+    if cfg.get("init_from"):
+        source = resume.init_from(task, cfg.init_from, run_dir, fresh=INIT_FROM_FRESH, write=dist.is_main())
     train_set = data.build(data_cfg, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = data.build(data_cfg, "val", train=False)
     trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))

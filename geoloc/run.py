@@ -5,6 +5,7 @@ Tests call these functions directly with a config from `hydra.compose`.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -32,13 +33,14 @@ def train(cfg: DictConfig) -> dict:
 
 
 def evaluate(cfg: DictConfig) -> dict:
-    """Score cfg.ckpt; its run dir (Hydra's log and config) is owned like a training's, so a failed start
-    leaves none."""
+    """Score cfg.ckpt. Under Hydra its run dir (Hydra's log and config) is owned like a training's, so a failed
+    start leaves none; a config composed outside Hydra may have no run dir."""
     from omegaconf import OmegaConf
 
     from geoloc.engine import checkpoint
 
-    with claimed(cfg.run_dir, ckpt=cfg.ckpt):
+    run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
+    with claimed(run_dir, ckpt=cfg.ckpt) if run_dir else contextlib.nullcontext():
         refuse_existing_metrics_out(cfg)
         state = checkpoint.load(cfg.ckpt)
         stored = OmegaConf.create(state.get("config") or "{}")

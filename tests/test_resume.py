@@ -58,7 +58,7 @@ def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(fini
     # the weights arrive; the GMS queue (the source data's places) starts empty
     cfg = train_cfg(root, tmp_path / "x")
     task = build_task(cfg)
-    record = resume.init_from(task, source_path, tmp_path, fresh=INIT_FROM_FRESH)
+    record = resume.init_from(task, source_path, fresh=INIT_FROM_FRESH)
     for key, value in task.state_dict().items():
         if not key.startswith("queue."):
             assert torch.equal(value, source["task"][key]), key

@@ -128,7 +128,7 @@ print(json.dumps(dirs))
     assert sweep_a == "multirun/crossview/2025-01-01_12-00-00_1111" and sweep_b.endswith("_2222")
 
 
-def test_a_run_that_fails_before_writing_leaves_no_dir(tiny_cvusa, tmp_path):
+def test_a_run_that_fails_before_writing_leaves_no_dir(finished_run, tiny_cvusa, tmp_path):
     run_dir = tmp_path / "outputs" / "run"
     (run_dir / ".hydra").mkdir(parents=True)  # what Hydra writes before the app starts
     (run_dir / ".hydra" / "config.yaml").write_text("x: 1\n")
@@ -141,6 +141,9 @@ def test_a_run_that_fails_before_writing_leaves_no_dir(tiny_cvusa, tmp_path):
     assert not run_dir.exists()
     with pytest.raises(FileNotFoundError):  # not only config errors: a dataset that is not there
         run.train(train_cfg(tmp_path / "nowhere", run_dir))
+    assert not run_dir.exists()
+    with pytest.raises(FileNotFoundError):  # nor after init_from= loaded its weights
+        run.train(train_cfg(tmp_path / "nowhere", run_dir, f"init_from={finished_run[1] / 'last.pt'}"))
     assert not run_dir.exists()
 
 

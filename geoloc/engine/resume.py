@@ -76,9 +76,9 @@ def checked_resume(cfg: DictConfig) -> None:
             f"init_from={path} instead of ckpt=. A resume may change only: {', '.join(RESUME_MAY_CHANGE)}.")
 
 
-def init_from(task, path: str | Path, run_dir: Path, fresh: tuple[str, ...] = (), write: bool = True) -> dict:
+def init_from(task, path: str | Path, fresh: tuple[str, ...] = ()) -> dict:
     """Load the network weights of checkpoint `path` into `task` (keys under the `fresh` prefixes keep their new
-    values) and return the record of where they came from, also written to run_dir/init_from.json."""
+    values) and return the record of where they came from (`write_source` puts it in the run dir)."""
     path = Path(path)
     state = ckpt_io.load(path)
     ckpt_io.load_task_state(task, state, path, fresh=fresh,
@@ -87,9 +87,12 @@ def init_from(task, path: str | Path, run_dir: Path, fresh: tuple[str, ...] = ()
     record = {"path": str(path.resolve()), "sha256": sha256(path), "epoch": state.get("epoch"),
               "global_step": state.get("global_step"), "monitor": state.get("monitor"),
               "best_metric": best if best is not None and math.isfinite(best) else None}
-    if write:
-        (run_dir / "init_from.json").write_text(json.dumps(record, indent=2) + "\n")
     return record
+
+
+def write_source(run_dir: Path, record: dict) -> None:
+    """run_dir/init_from.json: where an init_from= run's weights came from."""
+    (run_dir / "init_from.json").write_text(json.dumps(record, indent=2) + "\n")
 
 
 def sha256(path: Path) -> str:

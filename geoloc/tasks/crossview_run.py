@@ -39,10 +39,12 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     task = build_task(cfg)  # fails on a bad model/loss/optim config before any data is generated
     source = None
     if cfg.get("init_from"):
-        source = resume.init_from(task, cfg.init_from, run_dir, fresh=INIT_FROM_FRESH, write=dist.is_main())
+        source = resume.init_from(task, cfg.init_from, fresh=INIT_FROM_FRESH)
     train_set = data.build(data_cfg, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = data.build(data_cfg, "val", train=False)
     trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))
+    if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
+        resume.write_source(run_dir, source)
     trainer.init_from = source
     best = trainer.fit(task, train_set, val_set, batch_size=data_cfg.batch_size,
                        val_batch_size=data_cfg.val_batch_size or None, resume=cfg.get("ckpt"))

@@ -5,46 +5,57 @@ Tests call these functions directly with a config from `hydra.compose`.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from omegaconf import DictConfig
 
+from geoloc.config import ConfigError
 from geoloc.engine import distributed as dist
-
-
-def run_dir(cfg: DictConfig) -> Path:
-    path = Path(cfg.run_dir)
-    if dist.is_main():
-        path.mkdir(parents=True, exist_ok=True)
-    return path
+from geoloc.engine.rundir import claimed
 
 
 def train(cfg: DictConfig) -> dict:
+    """Train in `cfg.run_dir`, which the run owns while it lasts (geoloc/engine/rundir.py)."""
     try:
-        if cfg.task.name == "mmdip":
-            from geoloc.tasks import mmdip
+        with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
+            if cfg.task.name == "mmdip":
+                from geoloc.tasks import mmdip
 
-            return mmdip.train(cfg, run_dir(cfg))
-        if cfg.task.name == "crossview":
-            from geoloc.tasks import crossview_run
+                return mmdip.train(cfg, run_dir)
+            if cfg.task.name == "crossview":
+                from geoloc.tasks import crossview_run
 
-            return crossview_run.train(cfg, run_dir(cfg))
-        raise ValueError(f"unknown task {cfg.task.name!r}; choose task=crossview or task=mmdip")
+                return crossview_run.train(cfg, run_dir)
+            raise ConfigError(f"unknown task {cfg.task.name!r}; choose task=crossview or task=mmdip")
     finally:
         dist.cleanup()
 
 
 def evaluate(cfg: DictConfig) -> dict:
+    """Score cfg.ckpt. Under Hydra its run dir (Hydra's log and config) is owned like a training's, so a failed
+    start leaves none; a config composed outside Hydra may have no run dir."""
     from omegaconf import OmegaConf
 
     from geoloc.engine import checkpoint
 
-    state = checkpoint.load(cfg.ckpt)
-    stored = OmegaConf.create(state.get("config") or "{}")
-    if OmegaConf.select(stored, "task.name") == "mmdip":
-        from geoloc.tasks import mmdip
+    run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
+    with claimed(run_dir, ckpt=cfg.ckpt) if run_dir else contextlib.nullcontext():
+        refuse_existing_metrics_out(cfg)
+        state = checkpoint.load(cfg.ckpt)
+        stored = OmegaConf.create(state.get("config") or "{}")
+        if OmegaConf.select(stored, "task.name") == "mmdip":
+            from geoloc.tasks import mmdip
 
-        return mmdip.evaluate(cfg, cfg.ckpt, cfg.metrics_out)
-    from geoloc.tasks import crossview_run
+            return mmdip.evaluate(cfg, cfg.ckpt, cfg.metrics_out)
+        from geoloc.tasks import crossview_run
 
-    return crossview_run.evaluate(cfg, state)
+        return crossview_run.evaluate(cfg, state)
+
+
+def refuse_existing_metrics_out(cfg: DictConfig) -> None:
+    """metrics_out= never replaces a file silently; checked before the evaluation, not after it."""
+    out = cfg.get("metrics_out")
+    if out and Path(out).exists() and not cfg.get("metrics_out_overwrite", False):
+        raise ConfigError(f"metrics_out={out} already exists; nothing was evaluated. Choose another file, or pass "
+                          f"metrics_out_overwrite=true to replace it.")

@@ -63,3 +63,14 @@ def compose_train(overrides: list[str]):
 def compose_evaluate(overrides: list[str]):
     with initialize_config_dir(str(CONF), version_base="1.3"):
         return compose("evaluate", overrides=overrides)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> tuple[Path, Path]:
+    """(dataset root, run dir) of one finished 1-epoch TINY run, shared by a module's tests, which only read it."""
+    from geoloc import run
+
+    base = tmp_path_factory.mktemp("finished")
+    root = write_cvusa(base / "cvusa", n_train=12, n_val=8)
+    run.train(compose_train([*TINY, f"dataset.root={root}", f"run_dir={base / 'run'}", "trainer.max_epochs=1"]))
+    return root, base / "run"

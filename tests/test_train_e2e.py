@@ -23,23 +23,28 @@ def val_records(run_dir):
     return [json.loads(x) for x in lines if '"val/R@1"' in x]
 
 
-def test_kill_and_resume_reproduce_the_uninterrupted_run(tiny_cvusa, tmp_path, monkeypatch):
-    full = tmp_path / "full"
-    run.train(train_cfg(tiny_cvusa, full, "trainer.max_epochs=3"))
-
-    # the same run, killed in the middle of its second epoch
-    killed = tmp_path / "killed"
+def train_until_killed(cfg, monkeypatch, global_step: int) -> None:
+    """run.train(cfg), killed (KeyboardInterrupt) as the step after `global_step` starts."""
     original = CrossViewTask.training_step
 
     def dying_step(self, batch, engine):
-        if engine.epoch == 1 and engine.global_step == 4:
+        if engine.global_step == global_step:
             raise KeyboardInterrupt("simulated kill")
         return original(self, batch, engine)
 
     monkeypatch.setattr(CrossViewTask, "training_step", dying_step)
     with pytest.raises(KeyboardInterrupt):
-        run.train(train_cfg(tiny_cvusa, killed, "trainer.max_epochs=3"))
+        run.train(cfg)
     monkeypatch.setattr(CrossViewTask, "training_step", original)
+
+
+def test_kill_and_resume_reproduce_the_uninterrupted_run(tiny_cvusa, tmp_path, monkeypatch):
+    full = tmp_path / "full"
+    run.train(train_cfg(tiny_cvusa, full, "trainer.max_epochs=3"))
+
+    # the same run, killed in the middle of its second epoch (3 steps per epoch)
+    killed = tmp_path / "killed"
+    train_until_killed(train_cfg(tiny_cvusa, killed, "trainer.max_epochs=3"), monkeypatch, global_step=4)
     assert ckpt_io.load(killed / "last.pt")["epoch"] == 0  # the last good checkpoint survived the kill
 
     resumed = tmp_path / "resumed"

@@ -1,6 +1,6 @@
 """Gather a Hydra sweep's metrics.jsonl files into markdown tables, mean ± std over seeds.
 
-    python tools/aggregate_sweep.py multirun/crossview/2025-01-01_12-00-00 [--at last|best|both] [--monitor R@1]
+    python tools/aggregate_sweep.py multirun/crossview/2025-01-01_12-00-00_4242 [--at last|best|both] [--monitor R@1]
         [--metrics R@1,R@5,R@10,R@1%] [--out FILE]
 
 Each run dir (any folder below MULTIRUN_DIR with a metrics.jsonl) gives its validation records (the keys `val/...`),

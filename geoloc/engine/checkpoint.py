@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from geoloc.config import ConfigError
+
 
 def save_atomic(obj: dict, path: str | Path) -> None:
     """Write to a temp file in the same folder, fsync, then rename: a kill never leaves a half-written file."""
@@ -18,6 +20,7 @@ def save_atomic(obj: dict, path: str | Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~umask())  # mkstemp makes 0600; a checkpoint gets the mode any new file would
         with os.fdopen(fd, "wb") as f:
             torch.save(obj, f)
             f.flush()
@@ -58,6 +61,41 @@ def _unreadable(path: Path, err: Exception) -> str:
     if refused:  # a pickle of arbitrary Python objects: never written by geoloc's trainer
         return f"not a geoloc checkpoint: it holds objects a safe load refuses ({refused[0]})"
     return f"truncated, corrupt or not a geoloc last.pt/best.pt ({type(err).__name__}: {lines[0] if lines else ''})"
+
+
+def umask() -> int:
+    """The process umask, read without changing it where Linux shows it (os.umask can only read by setting)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    current = os.umask(0o022)
+    os.umask(current)
+    return current
+
+
+def load_task_state(task: torch.nn.Module, state: dict, path, fresh: tuple[str, ...] = (),
+                    hint: str = "Was it written by another task or an edited config?") -> None:
+    """load_state_dict with an error naming the checkpoint and the keys when its network doesn't match `task`.
+
+    Keys starting with a prefix in `fresh` are neither loaded nor checked: they keep `task`'s own values.
+    """
+    own = {k: v for k, v in task.state_dict().items() if not k.startswith(fresh)}
+    saved = {k: v for k, v in state["task"].items() if not k.startswith(fresh)}
+    missing = [k for k in own if k not in saved]
+    unexpected = [k for k in saved if k not in own]
+    shapes = [f"{k}: ckpt {tuple(saved[k].shape)} vs model {tuple(v.shape)}"
+              for k, v in own.items() if k in saved and saved[k].shape != v.shape]
+    if missing or unexpected or shapes:
+        found = [f"mis-shaped {shapes[:4]}" if shapes else "", f"missing {missing[:4]}" if missing else "",
+                 f"unexpected {unexpected[:4]}" if unexpected else ""]
+        raise ConfigError(
+            f"checkpoint {path} does not match the model built from its config: {len(missing)} missing, "
+            f"{len(unexpected)} unexpected, {len(shapes)} mis-shaped tensors ({'; '.join(f for f in found if f)}). "
+            f"{hint}")
+    task.load_state_dict(saved, strict=not fresh)
 
 
 def rng_state() -> dict[str, Any]:

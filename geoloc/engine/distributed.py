@@ -83,12 +83,20 @@ def hydra_overrides_for_rank() -> list[str]:
     would make a second run dir. Ranks > 0 get a throwaway Hydra dir without logs or .hydra/ (they write
     nothing: rank 0 owns the run dir), so there is one run dir per launch.
     """
-    rank_ = _env_int("RANK", "SLURM_PROCID", default=0)
-    if rank_ == 0 or _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1) == 1:
+    rank_ = launch_rank()
+    if rank_ == 0:
         return []
     scratch = os.path.join(tempfile.gettempdir(), f"geoloc-hydra-rank{rank_}")
     return [f"hydra.run.dir={scratch}", "hydra.output_subdir=null", "hydra/job_logging=disabled",
             "hydra/hydra_logging=disabled"]
+
+
+def launch_rank() -> int:
+    """This process's rank as torchrun (RANK) or SLURM (SLURM_PROCID) set it, readable before the process group
+    exists; 0 when the launch has one process."""
+    if _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1) == 1:
+        return 0
+    return _env_int("RANK", "SLURM_PROCID", default=0)
 
 
 def is_dist() -> bool:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ class RunLogger:
         self.run_dir = Path(run_dir)
         self.enabled = dist.is_main() if enabled is None else enabled
         self._tb = None
+        self._purge_step: int | None = None
         if self.enabled:
             self.run_dir.mkdir(parents=True, exist_ok=True)
 
@@ -26,8 +28,30 @@ class RunLogger:
         if self._tb is None and self.enabled:
             from torch.utils.tensorboard import SummaryWriter
 
-            self._tb = SummaryWriter(log_dir=str(self.run_dir / "tb"))
+            self._tb = SummaryWriter(log_dir=str(self.run_dir / "tb"), purge_step=self._purge_step)
         return self._tb
+
+    def resume_at(self, step: int) -> None:
+        """Continue a run from its checkpoint at `step`: drop the metrics.jsonl rows a killed run wrote after it
+        (and a half-written last line), and have TensorBoard hide its events after it (purge_step), so the logs
+        read as one uninterrupted run."""
+        if not self.enabled:
+            return
+        self._purge_step = step + 1
+        path = self.run_dir / "metrics.jsonl"
+        if not path.is_file():
+            return
+        kept = []
+        for line in path.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if row.get("step", 0) <= step:
+                kept.append(line + "\n")
+        tmp = path.with_name(".metrics.jsonl.tmp")
+        tmp.write_text("".join(kept))
+        os.replace(tmp, path)
 
     def log(self, metrics: dict[str, Any], step: int, prefix: str = "") -> None:
         """Scalars to TensorBoard and one JSON line to metrics.jsonl."""

@@ -125,6 +125,7 @@ class Trainer:
         self.global_step = 0
         self.best_metric = -math.inf
         self.best: dict[str, float] = {}
+        self.init_from: dict | None = None  # where the weights of an init_from= run came from (resume.init_from)
         self.engine = Engine(self)
 
     # ---- helpers -------------------------------------------------------------------------------------------
@@ -175,6 +176,7 @@ class Trainer:
             "best": self.best,
             "monitor": task.monitor,
             "config": self.config_yaml,
+            "init_from": self.init_from,
             "rng": ckpt_io.rng_state(),
             "geoloc_version": geoloc.__version__,
             "environment": self.environment,  # versions and thread count: what makes the figures reproducible
@@ -182,7 +184,7 @@ class Trainer:
 
     def _restore(self, path: Path, task: Task, optimizers, schedulers) -> None:
         state = ckpt_io.load(path, map_location=self.device)
-        task.load_state_dict(state["task"])
+        ckpt_io.load_task_state(task, state, path, hint="Resume with the config it was trained with.")
         for o, s in zip(optimizers, state["optimizers"]):
             o.load_state_dict(s)
         for sch, s in zip(schedulers, state["schedulers"]):
@@ -192,7 +194,9 @@ class Trainer:
         self.global_step = state["global_step"]
         self.best_metric = state["best_metric"]
         self.best = dict(state.get("best", {}))
+        self.init_from = state.get("init_from")
         ckpt_io.set_rng_state(state["rng"])
+        self.logger.resume_at(self.global_step)  # the killed run's rows after the checkpoint are run again
 
     # ---- the loop ------------------------------------------------------------------------------------------
     def fit(self, task: Task, train_set: Dataset, val_set: Dataset | None, batch_size: int,

@@ -5,14 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import ConfigError, checked, to_yaml
+from geoloc.config import checked, to_yaml
 from geoloc.data import crossview as data
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
+from geoloc.engine import resume
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks import crossview_gallery
 from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
@@ -20,6 +20,8 @@ from geoloc.tasks.crossview_gallery import GalleryConfig
 
 # transform settings that must match what the network was trained on; evaluate always takes them from the ckpt
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
+# what an init_from= run does not take from its source: the GMS queue holds the source data's places and descriptors
+INIT_FROM_FRESH = ("queue.",)
 
 
 def build_task(cfg: DictConfig) -> CrossViewTask:
@@ -31,11 +33,19 @@ def build_task(cfg: DictConfig) -> CrossViewTask:
 def train(cfg: DictConfig, run_dir: Path) -> dict:
     data_cfg = checked(cfg.dataset, data.CrossViewDataConfig, "dataset")
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
+    if cfg.get("ckpt"):
+        resume.checked_resume(cfg)  # before any data is generated or checked
     seed_everything(trainer_cfg.seed)
     task = build_task(cfg)  # fails on a bad model/loss/optim config before any data is generated
+    source = None
+    if cfg.get("init_from"):
+        source = resume.init_from(task, cfg.init_from, fresh=INIT_FROM_FRESH)
     train_set = data.build(data_cfg, "train", train=True, augment_seed=trainer_cfg.seed)
     val_set = data.build(data_cfg, "val", train=False)
     trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))
+    if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
+        resume.write_source(run_dir, source)
+    trainer.init_from = source
     best = trainer.fit(task, train_set, val_set, batch_size=data_cfg.batch_size,
                        val_batch_size=data_cfg.val_batch_size or None, resume=cfg.get("ckpt"))
     if dist.is_main():
@@ -45,7 +55,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
             from geoloc.eval.figures import crossview_figures
 
             state = ckpt_io.load(run_dir / "best.pt")
-            load_task_state(task, state, run_dir / "best.pt")
+            ckpt_io.load_task_state(task, state, run_dir / "best.pt")
             crossview_figures(task, val_set, run_dir, trainer.device, data_cfg.val_batch_size or data_cfg.batch_size)
     return best
 
@@ -56,7 +66,8 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     data_section = merged_dataset(stored.dataset, cfg.get("dataset"))
     data_cfg = checked(data_section, data.CrossViewDataConfig, "dataset")
     task = build_task(stored)
-    load_task_state(task, state, cfg.ckpt)
+    ckpt_io.load_task_state(task, state, cfg.ckpt, hint="Was it written by another task or an edited config? "
+                            "Evaluate it with the config it was trained with.")
     dataset = data.build(data_cfg, data_cfg.split, train=False)
     trainer = Trainer(TrainerConfig(device=cfg.get("device", "auto"), num_workers=cfg.get("num_workers", 0),
                                     progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
@@ -89,23 +100,6 @@ def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConf
         if value is not None and key not in TRANSFORM_KEYS:
             section[key] = value
     return OmegaConf.create(section)
-
-
-def load_task_state(task: torch.nn.Module, state: dict, path) -> None:
-    """load_state_dict with a readable error when the checkpoint's network doesn't match the config."""
-    own = task.state_dict()
-    saved = state["task"]
-    missing = [k for k in own if k not in saved]
-    unexpected = [k for k in saved if k not in own]
-    shapes = [f"{k}: ckpt {tuple(saved[k].shape)} vs model {tuple(v.shape)}"
-              for k, v in own.items() if k in saved and saved[k].shape != v.shape]
-    if missing or unexpected or shapes:
-        raise ConfigError(
-            f"checkpoint {path} does not match the model built from its config: {len(missing)} missing, "
-            f"{len(unexpected)} unexpected, {len(shapes)} mis-shaped tensors (e.g. "
-            f"{(shapes or missing or unexpected)[:3]}). Was it written by another task or an edited config? "
-            f"Evaluate it with the config it was trained with.")
-    task.load_state_dict(saved)
 
 
 def print_table(metrics: dict, title: str) -> None:

@@ -72,8 +72,10 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
         raise ConfigError("dataset=emptycities has no labels: it is for evaluation only (evaluate.py ckpt=...)")
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
-    if cfg.get("ckpt"):
-        raise ConfigError("task=mmdip runs both phases from scratch; resuming with ckpt= is not supported")
+    if cfg.get("ckpt") or cfg.get("init_from"):
+        raise ConfigError("task=mmdip runs both phases from scratch: resuming with ckpt= or starting from weights "
+                          "with init_from= is not supported. Start the run again in a new run dir (leave "
+                          "hydra.run.dir at its default).")
     return task_cfg, data_cfg, trainer_cfg
 
 

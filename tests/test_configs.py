@@ -75,3 +75,13 @@ def test_bad_alignment_and_precision_are_refused():
         checked(cfg.dataset, CrossViewDataConfig, "dataset")
     with pytest.raises(ConfigError, match="precision"):
         checked(cfg.trainer, TrainerConfig, "trainer")
+
+
+@pytest.mark.parametrize("group,name", [("loss", "infonce"), ("model", "convnext"), ("optim", "sgd")])
+def test_a_name_the_task_does_not_build_is_refused(group, name, tmp_path):
+    """`loss.name=infonce` used to train the triplet loss without a word: each group's name is now read."""
+    from geoloc.tasks.crossview_run import build_task
+
+    cfg = compose_train([f"{group}.name={name}", f"run_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match=rf"{group}.name='{name}' .* choose one of"):
+        build_task(cfg)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from geoloc.config import require_name
 from geoloc.models.msae import MSAEHead, PlainHead
 from geoloc.models.vgg import VGG16Trunk
 
@@ -25,6 +26,7 @@ class CrossViewModelConfig:
     pool: int = 8
 
     def __post_init__(self):
+        require_name("model", self.name, ("msae_vgg16",))
         if self.width <= 0:
             raise ValueError(f"model.width must be > 0, got {self.width}")
         if self.dim < 1 or self.pool < 1 or self.proj_channels < 1 or self.scale_channels < 1:

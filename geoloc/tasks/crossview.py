@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
+from geoloc.config import require_name
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
 from geoloc.eval import recall_at_k
@@ -26,6 +27,7 @@ class TripletLossConfig:
     queue_start_epoch: int = 0  # the queue is filled and used from this epoch on (warm-up against feature drift)
 
     def __post_init__(self):
+        require_name("loss", self.name, ("gms_triplet",))
         if self.alpha <= 0:
             raise ValueError(f"loss.alpha must be > 0, got {self.alpha}")
         if self.queue_size < 0:
@@ -44,6 +46,7 @@ class OptimConfig:
     gamma: float = 0.1
 
     def __post_init__(self):
+        require_name("optim", self.name, ("adam",))
         if self.lr <= 0:
             raise ValueError(f"optim.lr must be > 0, got {self.lr}")
         if self.step_size < 1:

@@ -9,7 +9,7 @@ from torchvision.models import vgg16
 
 from geoloc.models import vgg as vgg_module
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
-from geoloc.models.msae import MSAEHead
+from geoloc.models.msae import MSAEHead, PlainHead
 from geoloc.models.vgg import MissingWeightsError, VGG16Trunk
 
 SMALL = dict(width=0.125, pretrained=False, dim=32, scale_channels=8, proj_channels=8, pool=4)
@@ -85,6 +85,14 @@ def test_attention_mask_reweights_the_features():
     torch.testing.assert_close(model.query(x), model.query(other))
     handle.remove()
     torch.testing.assert_close(model.query(x), desc)  # the hooks are gone
+
+
+@pytest.mark.parametrize("head", [MSAEHead, PlainHead])
+def test_head_defaults_are_the_configs(head):
+    built, cfg = head([4, 4, 4], dim=8), CrossViewModelConfig()
+    assert built.descriptor.proj.out_channels == cfg.proj_channels and built.descriptor.pool == cfg.pool
+    if head is MSAEHead:
+        assert built.scales[0].out_channels == cfg.scale_channels
 
 
 def test_without_msae_the_head_is_plain():

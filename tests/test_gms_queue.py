@@ -20,8 +20,18 @@ def test_starts_empty():
     queue = GMSQueue(4, 3)
     assert len(queue) == 0 and int(queue.ptr) == 0
     assert queue.ids.tolist() == [-1] * 4 and queue.ids.dtype == torch.long
+    assert queue.ptr.dtype == torch.long and queue.descriptors.dtype == torch.float32
+    assert GMSQueue(2, 1, dtype=torch.float64).descriptors.dtype == torch.float64  # dim 1 is a valid size
     _, mask = queue.negatives(torch.tensor([1, 2]))
     assert mask.shape == (2, 4) and not mask.any()
+
+
+def test_location_id_zero_is_a_filled_slot():
+    queue = GMSQueue(4, 3)
+    queue.push(*entries([0, 1]))
+    assert len(queue) == 2
+    _, mask = queue.negatives(torch.tensor([1]))
+    assert mask.tolist() == [[True, False, False, False]]
 
 
 def test_fifo_order_and_wrap_around():

@@ -30,8 +30,16 @@ def test_class_weights_paper_and_authors_formulas():
 def test_class_weights_refuse_bad_input():
     with pytest.raises(ValueError, match="sum to 1"):
         class_weights([0.5, 0.2])
+    with pytest.raises(ValueError, match="lie in"):
+        class_weights([0.6, 0.5, -0.1])  # sums to 1, but a fraction is negative
+    with pytest.raises(ValueError, match="non-empty 1-D sequence"):
+        class_weights([])
+    with pytest.raises(ValueError, match="non-empty 1-D sequence"):
+        class_weights([[0.5, 0.5]])
     with pytest.raises(ValueError, match="unknown class-weight formula"):
         class_weights([1.0], "enet")
+    # fractions rounded for a JSON file still sum to 1 closely enough
+    assert class_weights([0.3333, 0.3333, 0.3333]).shape == (3,)
 
 
 def test_lsgan_losses():

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 from torchvision.models import vgg16
 
 from geoloc.models import vgg as vgg_module
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
+from geoloc.models.msae import MSAEHead, PlainHead
 from geoloc.models.vgg import MissingWeightsError, VGG16Trunk
 
 SMALL = dict(width=0.125, pretrained=False, dim=32, scale_channels=8, proj_channels=8, pool=4)
@@ -28,14 +30,69 @@ def test_branches_share_no_weights():
     assert not q_ids & {id(p) for p in model.reference.parameters()}
 
 
-def test_attention_map_is_returned_and_reweights():
-    model = CrossViewModel(CrossViewModelConfig(**SMALL))
-    desc, mask = model.query(torch.randn(1, 3, 64, 64), return_attention=True)
-    assert mask.shape == (1, 1, 4, 4) and (mask >= 0).all() and (mask <= 1).all()
-    # the mask is used: forcing it to zero changes the descriptor
-    with torch.no_grad():
-        model.query.head.to_mask.bias.fill_(-1e4)
-    assert not torch.allclose(desc, model.query(torch.randn(1, 3, 64, 64) * 0 + 1))
+def forced_mask(head, value: float):
+    """Hook that replaces the mask logits, so sigmoid gives exactly 1 (value=+1e4) or 0 (value=-1e4)."""
+    return head.to_mask.register_forward_hook(lambda module, args, out: torch.full_like(out, value))
+
+
+def msae_by_hand(head, taps):
+    """MSAE head written out step by step from the paper's description, with the head's own weights."""
+    size = taps[-1].shape[-2:]
+    x = torch.cat([F.adaptive_avg_pool2d(t, size) for t in taps], dim=1)
+    multi = torch.cat([F.relu(F.conv2d(x, c.weight, c.bias, padding=c.kernel_size[0] // 2)) for c in head.scales],
+                      dim=1)
+    assert [c.kernel_size[0] for c in head.scales] == [3, 5, 7]  # eq. 3: three receptive fields
+    mask = torch.sigmoid(F.conv2d(multi, head.to_mask.weight, head.to_mask.bias))
+    d = head.descriptor
+    pooled = F.adaptive_avg_pool2d(F.relu(F.conv2d(x * mask, d.proj.weight, d.proj.bias)), d.pool)
+    return F.normalize(F.linear(pooled.flatten(1), d.fc.weight, d.fc.bias), dim=1), mask
+
+
+def test_msae_head_matches_a_step_by_step_formulation():
+    torch.manual_seed(0)
+    head = MSAEHead([4, 6, 6], dim=16, scale_channels=5, proj_channels=3, pool=2)
+    taps = [torch.randn(2, 4, 16, 16), torch.randn(2, 6, 8, 8), torch.randn(2, 6, 4, 4)]
+    desc, mask = head(taps, return_attention=True)
+    expected_desc, expected_mask = msae_by_hand(head, taps)
+    torch.testing.assert_close(mask, expected_mask)
+    torch.testing.assert_close(desc, expected_desc)
+    # the mask is learned: gradients reach the attention convolutions, as they do by hand
+    weights = torch.randn_like(desc)
+    names, params = zip(*head.named_parameters())
+    got = dict(zip(names, torch.autograd.grad((desc * weights).sum(), params)))
+    expected = dict(zip(names, torch.autograd.grad((expected_desc * weights).sum(), params)))
+    for name in names:
+        torch.testing.assert_close(got[name], expected[name], msg=name)
+    assert got["to_mask.weight"].abs().sum() > 0 and got["scales.2.weight"].abs().sum() > 0
+
+
+def test_attention_mask_reweights_the_features():
+    model = CrossViewModel(CrossViewModelConfig(**SMALL)).eval()
+    x, other = torch.randn(1, 3, 64, 64), torch.randn(1, 3, 64, 64)
+    desc, mask = model.query(x, return_attention=True)
+    assert mask.shape == (1, 1, 4, 4) and (mask > 0).all() and (mask < 1).all() and mask.std() > 0
+    head = model.query.head
+    taps = model.query.trunk(x)
+    unweighted = head.descriptor(torch.cat([F.adaptive_avg_pool2d(t, (4, 4)) for t in taps], dim=1))
+    # the same input with the mask forced to one gives the descriptor of the unweighted features ...
+    handle = forced_mask(head, 1e4)
+    torch.testing.assert_close(model.query(x), unweighted)
+    handle.remove()
+    # ... which the real mask changes
+    assert (desc - unweighted).abs().max() > 1e-3
+    # with the mask forced to zero nothing of the image gets through: two inputs, one descriptor
+    handle = forced_mask(head, -1e4)
+    torch.testing.assert_close(model.query(x), model.query(other))
+    handle.remove()
+    torch.testing.assert_close(model.query(x), desc)  # the hooks are gone
+
+
+@pytest.mark.parametrize("head", [MSAEHead, PlainHead])
+def test_head_defaults_are_the_configs(head):
+    built, cfg = head([4, 4, 4], dim=8), CrossViewModelConfig()
+    assert built.descriptor.proj.out_channels == cfg.proj_channels and built.descriptor.pool == cfg.pool
+    if head is MSAEHead:
+        assert built.scales[0].out_channels == cfg.scale_channels
 
 
 def test_without_msae_the_head_is_plain():

@@ -1,14 +1,11 @@
 """GMSQueue: FIFO order, masking, hardest negatives, checkpoint round trip, size 0 (DESIGN.md: GMS queue)."""
 import io
-from types import SimpleNamespace
 
 import pytest
 import torch
 import torch.nn.functional as F
 
 from geoloc.losses import GMSQueue, soft_margin_triplet
-from geoloc.models.crossview import CrossViewModelConfig
-from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
 
 
 def entries(ids, dim=3):
@@ -23,8 +20,18 @@ def test_starts_empty():
     queue = GMSQueue(4, 3)
     assert len(queue) == 0 and int(queue.ptr) == 0
     assert queue.ids.tolist() == [-1] * 4 and queue.ids.dtype == torch.long
+    assert queue.ptr.dtype == torch.long and queue.descriptors.dtype == torch.float32
+    assert GMSQueue(2, 1, dtype=torch.float64).descriptors.dtype == torch.float64  # dim 1 is a valid size
     _, mask = queue.negatives(torch.tensor([1, 2]))
     assert mask.shape == (2, 4) and not mask.any()
+
+
+def test_location_id_zero_is_a_filled_slot():
+    queue = GMSQueue(4, 3)
+    queue.push(*entries([0, 1]))
+    assert len(queue) == 2
+    _, mask = queue.negatives(torch.tensor([1]))
+    assert mask.tolist() == [[True, False, False, False]]
 
 
 def test_fifo_order_and_wrap_around():
@@ -148,8 +155,11 @@ def test_size_zero_is_disabled():
     queue = GMSQueue(0, 3)
     assert not queue.enabled
     assert queue.negatives(torch.tensor([1, 2])) == (None, None)
-    assert queue.push(*entries([1, 2])) is None
-    assert len(queue) == 0
+    before = {k: v.clone() for k, v in queue.state_dict().items()}
+    queue.push(*entries([1, 2]))  # a disabled queue ignores pushes: no error, nothing stored
+    after = queue.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert len(queue) == 0 and queue.descriptors.shape == (0, 3) and int(queue.ptr) == 0
     q = F.normalize(torch.randn(3, 3), dim=1)
     extra, mask = queue.negatives(torch.arange(3))
     torch.testing.assert_close(soft_margin_triplet(q, q, extra_negatives=extra, extra_mask=mask),
@@ -189,28 +199,3 @@ def test_push_gathers_over_ranks(tmp_path):
     for state in states:  # every rank holds the same queue, in rank order
         assert state["ids"].tolist() == [10, 11, 20, -1, -1] and int(state["ptr"]) == 3
     torch.testing.assert_close(states[0]["descriptors"], states[1]["descriptors"])
-
-
-def test_queue_start_epoch_keeps_the_queue_out_until_then():
-    """loss.queue_start_epoch: before it, no push and the loss is the plain in-batch one; from it on, both."""
-    torch.manual_seed(0)
-    model = CrossViewModelConfig(width=0.0625, pretrained=False, dim=8, scale_channels=2, proj_channels=2, pool=1)
-    task = CrossViewTask(model, TripletLossConfig(queue_size=6, queue_start_epoch=2), OptimConfig())
-    task.eval()  # fixed BN statistics: the same batch gives the same descriptors
-    batch = {"query": torch.randn(3, 3, 32, 32), "reference": torch.randn(3, 3, 32, 32), "index": torch.arange(3)}
-    plain = CrossViewTask(model, TripletLossConfig(queue_size=0), OptimConfig())
-    plain.model.load_state_dict(task.model.state_dict())
-    plain.eval()
-    expected = plain.training_step(batch, SimpleNamespace(epoch=0))["loss"]
-
-    for epoch in (0, 1):
-        out = task.training_step(batch, SimpleNamespace(epoch=epoch))
-        task.on_train_batch_end(out)
-        assert "push" not in out and len(task.queue) == 0
-        torch.testing.assert_close(out["loss"], expected)
-    first = task.training_step(batch, SimpleNamespace(epoch=2))
-    task.on_train_batch_end(first)
-    assert len(task.queue) == 3  # one hardest negative per query
-    torch.testing.assert_close(first["loss"], expected)  # the queue was still empty for this step's loss
-    second = task.training_step(batch, SimpleNamespace(epoch=2))
-    assert not torch.allclose(second["loss"], expected)  # now its entries are extra negatives

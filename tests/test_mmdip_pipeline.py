@@ -11,6 +11,7 @@ from test_dynamic_readers import write_tiny_dynamic
 
 from geoloc.config import ConfigError
 from geoloc.tasks import mmdip
+from geoloc.tasks.mmdip import retrieval
 from geoloc.tasks.mmdip.config import MMDIPConfig, TranslationConfig
 from geoloc.tasks.mmdip.networks import build_generator, generator_input
 
@@ -59,20 +60,51 @@ def one_thread():
     torch.set_num_threads(before)
 
 
+def eq5_ranks_by_hand(q_bow, q_spm, r_bow, r_spm, alpha, tol=1e-5):
+    """Eq. 5 in float64, M = alpha cos(BoW) + (1 - alpha) cos(SPM) (a zero code has cosine 0), and for each
+    query the number of other references strictly above its own: (ranks ignoring near-ties, ranks counting them)."""
+    def cos(a, b):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+        return (a @ b.T) / np.maximum(np.outer(na, nb), 1e-300)
+
+    m = alpha * cos(q_bow, r_bow) + (1 - alpha) * cos(q_spm, r_spm)
+    own = np.diag(m)[:, None]
+    others = ~np.eye(*m.shape, dtype=bool)
+    return ((m > own + tol) & others).sum(1), ((m > own - tol) & others).sum(1)
+
+
 @pytest.mark.slow
-def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
-    root = write_tiny_dynamic(tmp_path / "dyn", n_train=4, n_val=4)
+def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread, monkeypatch):
+    root = write_tiny_dynamic(tmp_path / "dyn", n_train=4, n_val=8)
     run = tmp_path / "run"
     cfg = compose_train([*TINY_MMDIP, f"dataset.root={root}", f"run_dir={run}"])
+    fused_calls = []  # the codes the fused recall is computed from, and what it returned
+
+    def spy_recall(q_bow, q_spm, r_bow, r_spm, alpha, ks):
+        out = real_recall(q_bow, q_spm, r_bow, r_spm, alpha, ks)
+        fused_calls.append(((q_bow, q_spm, r_bow, r_spm, alpha), out))
+        return out
+
+    real_recall = retrieval.recall
+    monkeypatch.setattr(retrieval, "recall", spy_recall)
     result = mmdip.train(cfg, run)
+    monkeypatch.setattr(retrieval, "recall", real_recall)
     for phase in ("phase1", "phase2"):
         assert (run / phase / "best.pt").is_file() and (run / phase / "last.pt").is_file()
     assert 0 <= result["phase1"]["MIoU"] <= 1 and 0 <= result["phase2"]["SSIM"] <= 1
     vpr = result
-    assert vpr["num_queries"] == 4
+    assert vpr["num_queries"] == 8
     for key in ("R@1", "R@5", "R@10", "R@1%", "BoW/R@1", "SPM/R@1", "dynamic-BoW/R@1"):
         assert 0 <= vpr[key] <= 1
-    assert vpr["R@5"] == 1.0  # 4 references: every true match is in the top 5
+    # The fused recall is eq. 5 with alpha = 0.5, recomputed here in float64 (8 references: R@5 can miss)
+    (q_bow, q_spm, r_bow, r_spm, alpha), (metrics, ranks) = fused_calls[0]
+    assert alpha == 0.5 and q_bow.shape[0] == r_bow.shape[0] == 8
+    low, high = eq5_ranks_by_hand(q_bow, q_spm, r_bow, r_spm, alpha)
+    assert ((low <= ranks.numpy()) & (ranks.numpy() <= high)).all()
+    for k in (1, 5, 10):
+        assert vpr[f"R@{k}"] == metrics[f"R@{k}"] == float(np.mean(ranks.numpy() < k))
+    assert vpr["R@1%"] == vpr["R@1"]  # K = max(1, floor(8 / 100)) = 1
     for artefact in ("vocabulary.npz", "gallery_val_predicted.npz"):
         assert (run / "vpr" / artefact).is_file()
     assert json.loads((run / "metrics.json").read_text())["R@1"] == vpr["R@1"]
@@ -81,7 +113,8 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread):
     mtime = (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns
     out = tmp_path / "metrics.json"
     again = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "best.pt", out)
-    assert again["R@1"] == vpr["R@1"] and json.loads(out.read_text())["num_queries"] == 4
+    assert {k: again[k] for k in vpr if "R@" in k} == {k: vpr[k] for k in vpr if "R@" in k}
+    assert json.loads(out.read_text())["num_queries"] == 8
     assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns == mtime
     # other weights: the gallery is coded again, the vocabulary (image settings only) is kept
     vocab_mtime = (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns

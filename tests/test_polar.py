@@ -236,25 +236,41 @@ def test_normalized_grid_matches_remap():
     np.testing.assert_allclose(got.numpy(), street_to_aerial(img, (16, 16)), atol=0.05)
 
 
-@pytest.mark.parametrize("fn", [aerial_to_polar, street_to_aerial])
-@pytest.mark.parametrize("bad,err", [
-    ([[1, 2], [3, 4]], TypeError),
-    (np.zeros((2, 8, 8, 3), np.uint8), ValueError),
-    (np.zeros(8, np.uint8), ValueError),
-    (np.zeros((8, 8, 3), np.int16), TypeError),
-    (np.zeros((8, 8, 3), np.float64), TypeError),
-    (np.zeros((0, 8, 3), np.uint8), ValueError),
+@pytest.mark.parametrize("fn,name", [(aerial_to_polar, "aerial image"), (street_to_aerial, "street image")])
+@pytest.mark.parametrize("bad,err,match", [
+    ([[1, 2], [3, 4]], TypeError, "must be a numpy array .* got list"),
+    (np.zeros((2, 8, 8, 3), np.uint8), ValueError, r"must be HxW or HxWxC, got shape \(2, 8, 8, 3\)"),
+    (np.zeros(8, np.uint8), ValueError, "must be HxW or HxWxC"),
+    (np.zeros((8, 8, 3), np.int16), TypeError, "must be uint8 .* got dtype int16"),
+    (np.zeros((8, 8, 3), np.float64), TypeError, "must be uint8 .* got dtype float64"),
+    (np.zeros((0, 8, 3), np.uint8), ValueError, "is empty"),
+    (np.zeros((8, 0, 3), np.uint8), ValueError, "is empty"),
+    (np.zeros((8, 8, 0), np.uint8), ValueError, "is empty"),
 ])
-def test_bad_images(fn, bad, err):
-    with pytest.raises(err):
+def test_bad_images(fn, name, bad, err, match):
+    with pytest.raises(err, match=f"{name} {match}"):
         fn(bad, (4, 4))
 
 
 @pytest.mark.parametrize("fn", [aerial_to_polar, street_to_aerial])
-@pytest.mark.parametrize("out_hw", [(0, 4), (4,), "ab", (4.5, 4), None])
+@pytest.mark.parametrize("out_hw", [(0, 4), (4, 0), (4,), "ab", (4.5, 4), None])
 def test_bad_out_hw(fn, out_hw):
-    with pytest.raises(ValueError, match="out_hw"):
+    with pytest.raises(ValueError, match="out_hw must be a pair of positive ints"):
         fn(np.zeros((8, 8, 3), np.uint8), out_hw)
+
+
+def test_one_pixel_sizes_are_valid():
+    assert aerial_to_polar(np.full((1, 1), 7, np.uint8), (1, 1)).shape == (1, 1)
+    assert street_to_aerial(np.full((1, 5), 7, np.uint8), (3, 1)).shape == (3, 1)
+    assert street_to_aerial(np.full((5, 1, 3), 7, np.uint8), (1, 3)).shape == (1, 3, 3)
+
+
+def test_normalized_grid_maps_pixel_centres_to_the_corners():
+    # align_corners=True: pixel 0 is -1 and pixel size-1 is +1, down to a 2-pixel side
+    grid = polar.normalized_grid(np.array([[0.0, 1.0]]), np.array([[0.0, 2.0]]), (3, 2))
+    np.testing.assert_array_equal(grid, [[[-1, -1], [1, 1]]])
+    with pytest.raises(ValueError, match="in_hw"):
+        polar.normalized_grid(np.zeros((1, 1)), np.zeros((1, 1)), (0, 2))
 
 
 def test_polar_needs_square_aerial():

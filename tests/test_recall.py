@@ -51,7 +51,9 @@ def test_matches_brute_force(q, n):
     assert got == pytest.approx(brute_recall(ranks, n, ks), abs=0)
     assert all(isinstance(v, float) for v in got.values())
     assert set(got) == {"R@1", "R@2", "R@5", "R@10", "R@50", "R@1%"}
-    np.testing.assert_array_equal(retrieval_ranks(query, ref).numpy(), ranks)
+    got_ranks = retrieval_ranks(query, ref)
+    assert got_ranks.dtype == torch.long
+    np.testing.assert_array_equal(got_ranks.numpy(), ranks)
 
 
 def test_default_keys_and_tensor_input():
@@ -121,6 +123,17 @@ def test_faiss_flat_equals_torch(q, n):
     query, ref = descriptors(q, n, 16, noise=0.4, seed=4)
     ks = (1, 5, 10, 20)
     assert recall_at_k(query, ref, ks=ks, backend="faiss") == recall_at_k(query, ref, ks=ks)
+
+
+@needs_faiss
+def test_faiss_query_blocks_keep_their_row_numbers(monkeypatch):
+    # Force blocks of 7 queries: each block must look for its own true matches, not those of the first block.
+    import geoloc.eval.recall as recall_mod
+
+    query, ref = descriptors(60, 90, 24, noise=0.4, seed=11)
+    expected = recall_at_k(query, ref, ks=(1, 5, 10))
+    monkeypatch.setattr(recall_mod, "_chunk_rows", lambda n_cols: 7)
+    assert recall_at_k(query, ref, ks=(1, 5, 10), backend="faiss") == expected
 
 
 @needs_faiss

@@ -1,3 +1,4 @@
+"""SPM coding of a segmentation map (MMDIP eq. 4) against a cell-by-cell loop."""
 import numpy as np
 import pytest
 
@@ -24,7 +25,7 @@ def test_spm_matches_brute_force(shape, levels):
     rng = np.random.default_rng(sum(shape) + levels)
     seg = rng.integers(0, 8, size=shape)
     code = spm_encode(seg, 8, levels)
-    assert code.shape == (spm_dim(8, levels),)
+    assert code.shape == (spm_dim(8, levels),) and code.dtype == np.float32
     np.testing.assert_array_equal(code, brute_force_spm(seg, 8, levels))
 
 
@@ -32,6 +33,11 @@ def test_level_weights_eq4():
     np.testing.assert_array_equal(level_weights(2), [0.25, 0.25, 0.5])
     np.testing.assert_array_equal(level_weights(0), [1.0])
     np.testing.assert_array_equal(level_weights(3), [1 / 8, 1 / 8, 1 / 4, 1 / 2])
+
+
+def test_default_is_the_papers_two_levels():
+    seg = np.random.default_rng(0).integers(0, 8, size=(16, 16))
+    np.testing.assert_array_equal(spm_encode(seg, 8), brute_force_spm(seg, 8, 2))
 
 
 def test_level_zero_is_class_histogram():
@@ -46,3 +52,5 @@ def test_spm_refuses_bad_labels_and_shapes():
         spm_encode(np.zeros((4, 4, 3), dtype=int), 8, 1)
     with pytest.raises(ValueError, match="integer"):
         spm_encode(np.zeros((4, 4)), 8, 1)
+    with pytest.raises(ValueError, match="levels must be >= 0, got -1"):
+        spm_encode(np.zeros((4, 4), dtype=int), 8, -1)

@@ -111,6 +111,22 @@ def test_half_precision_is_computed_in_float32():
     torch.testing.assert_close(got, soft_margin_triplet(q, r), rtol=2e-2, atol=2e-2)
 
 
+def test_single_pair_with_one_kept_queue_negative_is_that_term():
+    q, r = unit_rows(1, 4, torch.float64, 17), unit_rows(1, 4, torch.float64, 18)
+    extra = unit_rows(2, 4, torch.float64, 19)
+    mask = torch.tensor([[False, True]])
+    got = soft_margin_triplet(q, r, extra_negatives=extra, extra_mask=mask)
+    torch.testing.assert_close(got, brute_force(q, r, 10.0, extra, mask))  # one term, the mean of itself
+
+
+def test_extra_negatives_are_cast_to_the_descriptors_dtype():
+    q, r = unit_rows(3, 4, torch.float32, 20), unit_rows(3, 4, torch.float32, 21)
+    extra = unit_rows(2, 4, torch.float64, 22)  # a float64 queue beside float32 descriptors
+    got = soft_margin_triplet(q, r, extra_negatives=extra)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got, soft_margin_triplet(q, r, extra_negatives=extra.float()))
+
+
 def test_single_pair_without_negatives_is_zero():
     q = unit_rows(1, 4, torch.float32, 16).requires_grad_()
     loss = soft_margin_triplet(q, q.detach())

@@ -52,7 +52,9 @@ def test_msae_head_matches_a_step_by_step_formulation():
     torch.manual_seed(0)
     head = MSAEHead([4, 6, 6], dim=16, scale_channels=5, proj_channels=3, pool=2)
     taps = [torch.randn(2, 4, 16, 16), torch.randn(2, 6, 8, 8), torch.randn(2, 6, 4, 4)]
+    assert [c.kernel_size for c in (head.to_mask, head.descriptor.proj)] == [(1, 1), (1, 1)]  # 1x1 convolutions
     desc, mask = head(taps, return_attention=True)
+    torch.testing.assert_close(head(taps), desc)  # the descriptor alone by default
     expected_desc, expected_mask = msae_by_hand(head, taps)
     torch.testing.assert_close(mask, expected_mask)
     torch.testing.assert_close(desc, expected_desc)
@@ -93,6 +95,20 @@ def test_head_defaults_are_the_configs(head):
     assert built.descriptor.proj.out_channels == cfg.proj_channels and built.descriptor.pool == cfg.pool
     if head is MSAEHead:
         assert built.scales[0].out_channels == cfg.scale_channels
+
+
+def test_plain_head_codes_conv5_3_alone():
+    torch.manual_seed(0)
+    head = PlainHead([4, 6, 8], dim=16, proj_channels=3, pool=2)
+    taps = [torch.randn(2, 4, 16, 16), torch.randn(2, 6, 8, 8), torch.randn(2, 8, 4, 4)]
+    d = head.descriptor
+    assert d.proj.kernel_size == (1, 1)
+    pooled = F.adaptive_avg_pool2d(F.relu(F.conv2d(taps[-1], d.proj.weight, d.proj.bias)), 2)
+    expected = F.normalize(F.linear(pooled.flatten(1), d.fc.weight, d.fc.bias), dim=1)
+    torch.testing.assert_close(head(taps), expected)
+    desc, mask = head(taps, return_attention=True)  # figures draw a uniform mask for the ablation
+    torch.testing.assert_close(desc, expected)
+    assert torch.equal(mask, torch.ones(2, 1, 4, 4))
 
 
 def test_without_msae_the_head_is_plain():

@@ -267,6 +267,8 @@ def test_one_pixel_sizes_are_valid():
 
 def test_normalized_grid_maps_pixel_centres_to_the_corners():
     # align_corners=True: pixel 0 is -1 and pixel size-1 is +1, down to a 2-pixel side
+    grid = polar.normalized_grid(np.array([[0.0, 1.0]]), np.array([[0.0, 1.0]]), (2, 2))
+    np.testing.assert_array_equal(grid, [[[-1, -1], [1, 1]]])
     grid = polar.normalized_grid(np.array([[0.0, 1.0]]), np.array([[0.0, 2.0]]), (3, 2))
     np.testing.assert_array_equal(grid, [[[-1, -1], [1, 1]]])
     with pytest.raises(ValueError, match="in_hw"):

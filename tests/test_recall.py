@@ -254,6 +254,23 @@ def test_bad_inputs(query, ref, kwargs, err, match):
         recall_at_k(query, ref, **kwargs)
 
 
+@pytest.mark.parametrize("query_first", [True, False])
+def test_mixed_precision_is_ranked_in_the_wider_type(query_first):
+    query, ref = descriptors(50, 70, 8, noise=0.4, seed=12)
+    wide, narrow = (query.astype(np.float64), ref) if query_first else (query, ref.astype(np.float64))
+    expected = recall_at_k(query.astype(np.float64), ref.astype(np.float64), ks=(1, 5))
+    assert recall_at_k(wide, narrow, ks=(1, 5)) == expected
+
+
+def test_bad_inputs_name_the_argument():
+    with pytest.raises(TypeError, match="query must be a torch tensor or a numpy array"):
+        recall_at_k([[1.0]], np.zeros((1, 1)))
+    with pytest.raises(ValueError, match=r"reference must be N x D, got shape \(4,\)"):
+        recall_at_k(np.zeros((1, 4)), np.zeros(4))
+    with pytest.raises(ValueError, match="got 4 queries and only 3 references"):
+        recall_at_k(np.zeros((4, 5)), np.zeros((3, 5)))
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_tensors_give_the_cpu_numbers():
     query, ref = descriptors(200, 300, 16, noise=0.4, seed=9)

@@ -269,6 +269,11 @@ def test_bad_inputs_name_the_argument():
         recall_at_k(np.zeros((1, 4)), np.zeros(4))
     with pytest.raises(ValueError, match="got 4 queries and only 3 references"):
         recall_at_k(np.zeros((4, 5)), np.zeros((3, 5)))
+    unit = np.eye(3, dtype=np.float32)
+    with pytest.raises(ValueError, match="of 3 query descriptors are all zeros"):
+        recall_at_k(unit * [[1], [0], [1]], unit)
+    with pytest.raises(ValueError, match="of 3 reference descriptors are all zeros"):
+        recall_at_k(unit, unit * [[1], [0], [1]])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

@@ -1,0 +1,156 @@
+"""One way to plug in a component: a registry per kind, keyed by the `name` field of its config section.
+
+    @register("loss", "my_loss")
+    def my_loss(margin: float = 0.3) -> nn.Module: ...
+
+    # conf/loss/my_loss.yaml (any folder on hydra.searchpath)
+    name: my_loss
+    module: my_project.losses      # imported before the lookup: a module name or a path to a .py file
+    margin: 0.3
+
+`build(kind, section, **runtime)` imports `module` when given, looks `name` up, checks the remaining keys against
+the factory's signature and calls it with them plus the runtime arguments the caller supplies (a head gets its
+backbone's channels, a loss its descriptor dimension...). An unknown name or argument fails at start-up, naming the
+key and the choices. docs/extending.md lists the kinds and what each factory receives and returns.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc.config import ConfigError
+
+#: the kinds of component, and the config section each is read from
+KINDS = {
+    "dataset": "dataset",
+    "backbone": "backbone",
+    "head": "head",
+    "loss": "loss",
+    "sampler": "sampler",
+    "optimizer": "optim",
+}
+# the modules that register geoloc's own components (imported on first lookup)
+BUILTIN_MODULES = (
+    "geoloc.data.readers",
+    "geoloc.models.backbones",
+    "geoloc.models.heads",
+    "geoloc.losses.registered",
+    "geoloc.data.samplers",
+    "geoloc.optim",
+)
+RESERVED = ("name", "module")
+
+_registry: dict[str, dict[str, Callable]] = {kind: {} for kind in KINDS}
+_builtins_loaded = False
+
+
+def register(kind: str, name: str) -> Callable[[Callable], Callable]:
+    """Decorator: make `fn` buildable as `<section>.name=<name>`. Registering a taken name is an error."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown component kind {kind!r}; the kinds are {list(KINDS)}")
+
+    def add(fn: Callable) -> Callable:
+        taken = _registry[kind].get(name)
+        if taken is not None and taken is not fn and _qualname(taken) != _qualname(fn):
+            raise ValueError(f"{kind} {name!r} is already registered by {_qualname(taken)}; pick another name")
+        _registry[kind][name] = fn
+        return fn
+
+    return add
+
+
+def names(kind: str) -> list[str]:
+    _load_builtins()
+    return sorted(_registry[kind])
+
+
+def lookup(kind: str, name: str) -> Callable:
+    _load_builtins()
+    if name not in _registry[kind]:
+        raise ConfigError(f"{KINDS[kind]}.name={name!r} is not a known {kind}; choose one of {names(kind)}, or add "
+                          f"one from your own module (docs/extending.md)")
+    return _registry[kind][name]
+
+
+def build(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (), **runtime: Any) -> Any:
+    """Build the `kind` named by `section.name` with the section's other keys (minus `exclude`) plus `runtime`."""
+    params = _as_dict(section)
+    where = KINDS[kind]
+    if "name" not in params:
+        raise ConfigError(f"config section '{where}' has no 'name'; choose one of {names(kind)}")
+    import_module(params.get("module"), where)
+    factory = lookup(kind, params["name"])
+    params = {k: v for k, v in params.items() if k not in RESERVED and k not in exclude}
+    check_arguments(factory, params, runtime, _qualname(factory), where)
+    return factory(**params, **runtime)
+
+
+def check_arguments(factory: Callable, params: dict, runtime: dict, what: str, where: str) -> None:
+    """Config keys the factory does not take, or that clash with runtime arguments, fail here, before any work."""
+    sig = inspect.signature(factory)
+    accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values())
+    settable = [n for n, p in sig.parameters.items()
+                if n not in runtime and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    for key in params:
+        if key in runtime:
+            raise ConfigError(f"{where}.{key} is set by geoloc at run time, not from config ({what})")
+        if key not in settable and not accepts_any:
+            raise ConfigError(f"{where}.{key} is not an argument of {what}; its arguments are {settable}")
+    missing = [n for n, p in sig.parameters.items() if p.default is p.empty and n not in params and n not in runtime
+               and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    if missing:
+        raise ConfigError(f"{where} needs {missing} ({what}); set {', '.join(f'{where}.{m}=...' for m in missing)}")
+
+
+def import_module(spec: str | None, where: str = "module") -> None:
+    """Import a plug-in: a dotted module name (on sys.path) or a path to a .py file."""
+    if not spec:
+        return
+    if spec.endswith(".py"):
+        path = Path(spec).expanduser().resolve()
+        if not path.is_file():
+            raise ConfigError(f"{where}.module={spec!r}: no such file ({path})")
+        name = f"geoloc_plugin_{path.stem}_{abs(hash(str(path))) % 10**8}"
+        if name in sys.modules:
+            return
+        loader = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(loader)
+        sys.modules[name] = module
+        try:
+            loader.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[name]
+            raise
+        return
+    try:
+        importlib.import_module(spec)
+    except ModuleNotFoundError as err:
+        raise ConfigError(f"{where}.module={spec!r} cannot be imported ({err}); give a module on sys.path "
+                          f"(PYTHONPATH) or a path to a .py file") from None
+
+
+def _load_builtins() -> None:
+    global _builtins_loaded
+    if not _builtins_loaded:
+        _builtins_loaded = True
+        for module in BUILTIN_MODULES:
+            importlib.import_module(module)
+
+
+def _as_dict(section: DictConfig | dict | None) -> dict:
+    if section is None:
+        return {}
+    if isinstance(section, DictConfig):
+        return OmegaConf.to_container(section, resolve=True)
+    return dict(section)
+
+
+def _qualname(fn: Callable) -> str:
+    return f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}"

@@ -1,0 +1,36 @@
+"""Reading the configs of checkpoints written before the component registry (geoloc <= 0.1 layout), so
+`evaluate.py` still scores them: `model: {name: msae_vgg16, width, pretrained, batchnorm, msae, dim, ...}` becomes
+`backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}` and `model: {dim}`; the GMS queue's buffers moved
+from `queue.*` to `loss.queue.*`. The weights themselves are unchanged."""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig, OmegaConf
+
+OLD_MODEL = "msae_vgg16"
+BACKBONE_KEYS = ("width", "pretrained", "weights_path", "batchnorm")
+
+
+def is_old_layout(stored: DictConfig) -> bool:
+    return OmegaConf.select(stored, "model.name") == OLD_MODEL
+
+
+def upgraded_config(stored: DictConfig) -> DictConfig:
+    if not is_old_layout(stored):
+        return stored
+    cfg = OmegaConf.to_container(stored, resolve=False)
+    model = cfg.pop("model")
+    cfg["backbone"] = {"name": "vgg16", **{k: model[k] for k in BACKBONE_KEYS if k in model}}
+    msae = model.get("msae", True)
+    head = {"name": "msae" if msae else "fc", "proj_channels": model.get("proj_channels", 64),
+            "pool": model.get("pool", 8)}
+    if msae:
+        head["scale_channels"] = model.get("scale_channels", 64)
+    cfg["head"] = head
+    cfg["model"] = {"dim": model.get("dim", 4096), "shared": False}
+    cfg.setdefault("sampler", {"name": "shuffle"})
+    return OmegaConf.create(cfg)
+
+
+def upgraded_state(task_state: dict) -> dict:
+    return {("loss." + k if k.startswith("queue.") else k): v for k, v in task_state.items()}

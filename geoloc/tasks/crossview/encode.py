@@ -1,0 +1,37 @@
+"""Descriptors of a whole dataset, through the engine's public loader (DDP-sharded, then gathered in order)."""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+
+from geoloc.engine import distributed as dist
+
+
+@torch.no_grad()
+def encode(task, engine, dataset, batch_size: int, keys=("query", "reference")) -> dict:
+    """{key: N x dim float32 CPU descriptors} of the whole dataset in dataset order.
+
+    keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
+    """
+    was_training = task.training
+    task.eval()
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*keys, "index")}
+    for batch in engine.loader(dataset, batch_size, train=False):
+        batch = engine.to_device(batch)
+        with engine.autocast():
+            for key in keys:
+                parts[key].append(getattr(task.model, key)(batch[key]).float())
+        parts["index"].append(batch["index"])
+    out = {k: dist.all_gather_variable(torch.cat(v)) for k, v in parts.items()}
+    order = torch.argsort(out.pop("index"))
+    task.train(was_training)
+    return {k: v[order].cpu() for k, v in out.items()}
+
+
+def encode_pairs(task, engine, pairs, batch_size: int) -> dict:
+    """The training pairs' descriptors without augmentation (for a similarity sampler)."""
+    plain = copy.copy(pairs)
+    plain.train = False
+    return encode(task, engine, plain, batch_size)

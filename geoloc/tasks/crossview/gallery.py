@@ -1,0 +1,117 @@
+"""evaluate.py with a saved gallery: encode the references once into a GalleryIndex, answer queries from it.
+
+    python evaluate.py ckpt=.../best.pt gallery.save=DIR [gallery.backend=faiss gallery.kind=ivfpq]
+    python evaluate.py ckpt=.../best.pt gallery.load=DIR      # only the query branch runs
+
+DIR holds `gallery.pt` (GalleryIndex.save) and `gallery.json` (what it was built from, and the reference spread).
+Query i's true match is row i of the gallery, so the queries must come from the split the gallery was built on.
+With `kind=flat` the recall equals the exact evaluation. Both ways run the checks of the validation path
+(geoloc.eval.descriptors): NaN/inf descriptors raise before anything is saved, and a collapsed gallery reports
+recall 0 with a warning (the spread of a saved gallery is measured when it is built; a collapsed one is not saved).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from geoloc.config import ConfigError
+from geoloc.engine import distributed as dist
+from geoloc.eval.descriptors import check_descriptors, guarded_recall
+from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.recall import one_percent_k
+from geoloc.tasks.crossview.encode import encode
+
+
+@dataclass
+class GalleryConfig:
+    save: str | None = None  # DIR: build the gallery from the split's references and save it there
+    load: str | None = None  # DIR: answer the queries from this saved gallery
+    backend: str = "torch"  # torch (exact, chunked) | faiss
+    kind: str = "flat"  # flat (exact) | ivfpq (faiss only)
+    nlist: int = 1024  # IVF-PQ inverted lists (capped at N / 39, FAISS's minimum training points per list)
+    m: int = 64  # PQ sub-quantisers; must divide the descriptor dim
+    nbits: int = 8
+    nprobe: int = 16
+
+    def __post_init__(self):
+        if self.save and self.load:
+            raise ValueError("give gallery.save=DIR (build) or gallery.load=DIR (query), not both")
+        if self.backend not in ("torch", "faiss"):
+            raise ValueError(f"gallery.backend must be 'torch' or 'faiss', got {self.backend!r}")
+        if self.kind not in ("flat", "ivfpq") or (self.kind == "ivfpq" and self.backend != "faiss"):
+            raise ValueError(f"gallery.kind must be 'flat' or (with backend=faiss) 'ivfpq', got {self.kind!r}")
+
+
+def build_index(reference: torch.Tensor, cfg: GalleryConfig) -> GalleryIndex:
+    nlist = max(1, min(cfg.nlist, reference.shape[0] // 39))
+    index = GalleryIndex(reference.shape[1], backend=cfg.backend, kind=cfg.kind, nlist=nlist, m=cfg.m,
+                         nbits=cfg.nbits, nprobe=cfg.nprobe)
+    return index.add(reference)
+
+
+def recall_from_index(index: GalleryIndex, query: torch.Tensor, ks=(1, 5, 10)) -> dict[str, float]:
+    """R@K and R@1% of queries whose true match is gallery row i, from one top-k search.
+
+    rank = the number of returned items scored strictly above the true match (as the index scored it); a true
+    match not in the top k_max counts as rank >= k_max. For a flat index this is `recall_at_k`'s convention.
+    """
+    k_pct = one_percent_k(len(index))
+    kmax = min(max(*ks, k_pct), len(index))
+    scores, rows = index.search(query, kmax)
+    own = rows == torch.arange(query.shape[0])[:, None]
+    found = own.any(dim=1)
+    own_score = torch.where(found, (scores * own).sum(dim=1), torch.full_like(scores[:, 0], float("inf")))
+    ranks = torch.where(found, (scores > own_score[:, None]).sum(dim=1), torch.full_like(rows[:, 0], kmax))
+    out = {f"R@{k}": float((ranks < k).double().mean()) for k in ks}
+    out["R@1%"] = float((ranks < k_pct).double().mean())
+    return out
+
+
+def evaluate(task, engine, dataset, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
+    """Build-and-save or load the gallery, then score the split's queries against it."""
+    if cfg.load:
+        folder = Path(cfg.load)
+        saved = json.loads((folder / "gallery.json").read_text()) if (folder / "gallery.json").is_file() else None
+        if saved is None:
+            raise FileNotFoundError(f"{folder} holds no gallery (gallery.json); build one with gallery.save={folder}")
+        if saved["num_references"] != len(dataset) or saved["dim"] != task.model_cfg.dim:
+            raise ConfigError(
+                f"the gallery in {folder} has {saved['num_references']} references of dim {saved['dim']} (built "
+                f"from {saved.get('dataset')}), but this split has {len(dataset)} queries and the model dim "
+                f"{task.model_cfg.dim}: evaluate the split and checkpoint it was built from")
+        if "reference_spread" not in saved:
+            raise ConfigError(f"the gallery in {folder} was built by an older geoloc that did not check its "
+                              "descriptors (no reference_spread in gallery.json): rebuild it with "
+                              f"gallery.save={folder}")
+        spread = saved["reference_spread"]
+        index = GalleryIndex.load(folder / "gallery.pt", device=engine.device)
+        query = encode(task, engine, dataset, batch_size, keys=("query",))["query"]
+        check_descriptors(query)
+        return {**guarded_recall(lambda: recall_from_index(index, query), spread), "num_references": len(index)}
+    desc = encode(task, engine, dataset, batch_size)
+    query, reference = desc["query"], desc["reference"]
+    spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
+
+    built = []
+
+    def build_and_score() -> dict:  # not called on a collapse: such a gallery is not worth saving
+        index = build_index(reference, cfg)
+        built.append(index)
+        if cfg.save and dist.is_main():
+            folder = Path(cfg.save)
+            folder.mkdir(parents=True, exist_ok=True)
+            index.save(folder / "gallery.pt")
+            info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
+                    **index.params, "reference_spread": spread, **meta}
+            (folder / "gallery.json").write_text(json.dumps(info, indent=2) + "\n")
+        return recall_from_index(index, query)
+
+    metrics = guarded_recall(build_and_score, spread)
+    if cfg.save and not built:
+        warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
+    return {**metrics, "num_references": len(reference)}

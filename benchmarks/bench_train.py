@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 from geoloc.config import checked  # noqa: E402
 from geoloc.data import crossview as data  # noqa: E402
 from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
-from geoloc.tasks.crossview_run import build_task  # noqa: E402
+from geoloc.tasks.crossview.run import build_task  # noqa: E402
 
 
 def dataset_root(args) -> Path:
@@ -51,7 +51,7 @@ def dataset_root(args) -> Path:
 
 
 def config(args, root: Path, run_dir: Path):
-    overrides = ["experiment=paper_cvusa", "model.pretrained=false", f"dataset.root={root}",
+    overrides = ["experiment=paper_cvusa", "backbone.pretrained=false", f"dataset.root={root}",
                  f"dataset.batch_size={args.batch}", f"trainer.device={args.device}", f"trainer.num_workers={args.workers}",
                  f"trainer.precision={args.precision}", f"trainer.channels_last={args.channels_last}",
                  f"trainer.compile={args.compile}", "trainer.progress=false", f"run_dir={run_dir}"]
@@ -67,7 +67,7 @@ def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
     optimizer = task.configure_optimizers()[0][0]
     model = torch.compile(task) if args.compile else task
     items = [train_set[(i % len(train_set), 0)] for i in range(args.batch)]
-    batch = trainer._to_device(default_collate(items))
+    batch = trainer.engine.to_device(default_collate(items))
     times = []
     for i in range(args.warmup + args.steps):
         if trainer.device.type == "cuda":

@@ -41,7 +41,8 @@ BUILTIN_MODULES = (
     "geoloc.data.readers",
     "geoloc.models.backbones",
     "geoloc.models.heads",
-    "geoloc.losses.registered",
+    "geoloc.losses.gms_triplet_loss",
+    "geoloc.losses.infonce",
     "geoloc.data.samplers",
     "geoloc.optim",
 )
@@ -58,7 +59,7 @@ def register(kind: str, name: str) -> Callable[[Callable], Callable]:
 
     def add(fn: Callable) -> Callable:
         taken = _registry[kind].get(name)
-        if taken is not None and taken is not fn and _qualname(taken) != _qualname(fn):
+        if taken is not None and taken is not fn and _origin(taken) != _origin(fn):
             raise ValueError(f"{kind} {name!r} is already registered by {_qualname(taken)}; pick another name")
         _registry[kind][name] = fn
         return fn
@@ -88,8 +89,27 @@ def build(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (
     import_module(params.get("module"), where)
     factory = lookup(kind, params["name"])
     params = {k: v for k, v in params.items() if k not in RESERVED and k not in exclude}
+    runtime = accepted(factory, runtime)
     check_arguments(factory, params, runtime, _qualname(factory), where)
     return factory(**params, **runtime)
+
+
+def check(kind: str, section: DictConfig | dict, *, runtime: tuple[str, ...] = ()) -> None:
+    """build()'s checks without building: for what is built later (an optimizer needs the network first)."""
+    params = _as_dict(section)
+    where = KINDS[kind]
+    import_module(params.get("module"), where)
+    factory = lookup(kind, params.get("name"))
+    params = {k: v for k, v in params.items() if k not in RESERVED}
+    check_arguments(factory, params, accepted(factory, dict.fromkeys(runtime)), _qualname(factory), where)
+
+
+def accepted(factory: Callable, runtime: dict) -> dict:
+    """The runtime arguments the factory takes: a plug-in asks only for what it needs (a loss may ignore `dim`)."""
+    parameters = inspect.signature(factory).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return runtime
+    return {k: v for k, v in runtime.items() if k in parameters}
 
 
 def check_arguments(factory: Callable, params: dict, runtime: dict, what: str, where: str) -> None:
@@ -150,6 +170,12 @@ def _as_dict(section: DictConfig | dict | None) -> dict:
     if isinstance(section, DictConfig):
         return OmegaConf.to_container(section, resolve=True)
     return dict(section)
+
+
+def _origin(fn: Callable) -> tuple:
+    """Where a factory is defined: a module imported twice (by name and by file path) registers the same one."""
+    code = getattr(fn, "__code__", None)
+    return (code.co_filename if code else _qualname(fn), getattr(fn, "__qualname__", repr(fn)))
 
 
 def _qualname(fn: Callable) -> str:

@@ -6,6 +6,7 @@ Tests call these functions directly with a config from `hydra.compose`.
 from __future__ import annotations
 
 import contextlib
+import importlib
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -15,26 +16,29 @@ from geoloc.engine import distributed as dist
 from geoloc.engine.rundir import claimed
 
 
+TASKS = ("crossview", "mmdip")  # packages under geoloc/tasks/, each with train(cfg, run_dir) and evaluate(cfg, state)
+
+
+def task_package(name: str | None):
+    """geoloc.tasks.<name>: every task package has the same two entry points."""
+    if name not in TASKS:
+        raise ConfigError(f"unknown task {name!r}; choose one of {', '.join(f'task={t}' for t in TASKS)}")
+    return importlib.import_module(f"geoloc.tasks.{name}")
+
+
 def train(cfg: DictConfig) -> dict:
     """Train in `cfg.run_dir`, which the run owns while it lasts (geoloc/engine/rundir.py)."""
     try:
+        package = task_package(cfg.task.name)
         with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
-            if cfg.task.name == "mmdip":
-                from geoloc.tasks import mmdip
-
-                return mmdip.train(cfg, run_dir)
-            if cfg.task.name == "crossview":
-                from geoloc.tasks import crossview_run
-
-                return crossview_run.train(cfg, run_dir)
-            raise ConfigError(f"unknown task {cfg.task.name!r}; choose task=crossview or task=mmdip")
+            return package.train(cfg, run_dir)
     finally:
         dist.cleanup()
 
 
 def evaluate(cfg: DictConfig) -> dict:
-    """Score cfg.ckpt. Under Hydra its run dir (Hydra's log and config) is owned like a training's, so a failed
-    start leaves none; a config composed outside Hydra may have no run dir."""
+    """Score cfg.ckpt with the task that wrote it. Under Hydra its run dir (Hydra's log and config) is owned like a
+    training's, so a failed start leaves none; a config composed outside Hydra may have no run dir."""
     from omegaconf import OmegaConf
 
     from geoloc.engine import checkpoint
@@ -44,13 +48,7 @@ def evaluate(cfg: DictConfig) -> dict:
         refuse_existing_metrics_out(cfg)
         state = checkpoint.load(cfg.ckpt)
         stored = OmegaConf.create(state.get("config") or "{}")
-        if OmegaConf.select(stored, "task.name") == "mmdip":
-            from geoloc.tasks import mmdip
-
-            return mmdip.evaluate(cfg, cfg.ckpt, cfg.metrics_out)
-        from geoloc.tasks import crossview_run
-
-        return crossview_run.evaluate(cfg, state)
+        return task_package(OmegaConf.select(stored, "task.name") or "crossview").evaluate(cfg, state)
 
 
 def refuse_existing_metrics_out(cfg: DictConfig) -> None:

@@ -47,10 +47,11 @@ def tiny_cvusa(tmp_path) -> Path:
     return write_cvusa(tmp_path / "cvusa", n_train=12, n_val=8)
 
 
-TINY = [
+TINY = [  # the paper's groups (not the CPU recipe's options), shrunk
+    "backbone=vgg16", "head=msae", "loss=gms_triplet", "optim=adam",
     "dataset=cvusa", "dataset.aerial_size=32", "dataset.pano_size=[16,64]", "dataset.batch_size=4",
-    "dataset.val_batch_size=4", "model.width=0.0625", "model.pretrained=false", "model.dim=16",
-    "model.scale_channels=4", "model.proj_channels=4", "model.pool=2", "loss.queue_size=8",
+    "dataset.val_batch_size=4", "backbone.width=0.0625", "backbone.pretrained=false", "model.dim=16",
+    "head.scale_channels=4", "head.proj_channels=4", "head.pool=2", "loss.queue_size=8",
     "trainer.num_workers=0", "trainer.progress=false", "trainer.device=cpu", "figures=false",
 ]
 
@@ -74,3 +75,27 @@ def finished_run(tmp_path_factory) -> tuple[Path, Path]:
     root = write_cvusa(base / "cvusa", n_train=12, n_val=8)
     run.train(compose_train([*TINY, f"dataset.root={root}", f"run_dir={base / 'run'}", "trainer.max_epochs=1"]))
     return root, base / "run"
+
+
+def small_model(dim: int = 32, width: float = 0.125, msae: bool = True, scale_channels: int = 8,
+                proj_channels: int = 8, pool: int = 4, batchnorm: bool = False, shared: bool = False):
+    """A CPU-sized VGG16 + MSAE (or plain FC) Siamese built the way configs build it."""
+    from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
+
+    backbone = {"name": "vgg16", "width": width, "pretrained": False, "batchnorm": batchnorm}
+    head = {"name": "msae" if msae else "fc", "proj_channels": proj_channels, "pool": pool}
+    if msae:
+        head["scale_channels"] = scale_channels
+    return CrossViewModel(backbone, head, CrossViewModelConfig(dim=dim, shared=shared))
+
+
+def tiny_task(dim: int = 8, width: float = 0.0625, batchnorm: bool = True, loss: dict | None = None,
+              optim: dict | None = None):
+    """A tiny CrossViewTask (VGG16-BN at 1/16 width, MSAE 4/4/2) with the given loss config (default gms_triplet)."""
+    from geoloc.models.crossview import CrossViewModelConfig
+    from geoloc.tasks.crossview.task import CrossViewTask
+
+    backbone = {"name": "vgg16", "width": width, "pretrained": False, "batchnorm": batchnorm}
+    head = {"name": "msae", "scale_channels": 4, "proj_channels": 4, "pool": 2}
+    return CrossViewTask(CrossViewModelConfig(dim=dim), backbone, head, {"name": "gms_triplet", **(loss or {})},
+                         optim or {"name": "adam"})

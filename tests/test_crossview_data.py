@@ -97,7 +97,7 @@ def test_real_cvact_sample_loads_with_a_written_act_data_mat(tmp_path):
     (root / "ANU_data_small").symlink_to(REALDATA / "cvact_mini" / "ANU_data_small")
     write_act_mat(root, ["sample01"], train=[1], val=[1])
     ds = crossview.build(CrossViewDataConfig(name="cvact", root=str(root), aerial_size=128), "val", train=False)
-    street, _ = ds.load(0)
+    street = crossview.load_view(ds.split.queries[0], ds.split.query_view)
     full = cv2.imread(str(REALDATA / "cvact_mini/ANU_data_small/streetview/sample01_grdView.jpg"))
     assert street.shape[0] == full.shape[0] // 2  # the horizon band rows 208:624 of 832
     assert ds[0]["query"].shape == (3, 128, 128)
@@ -130,7 +130,7 @@ def test_the_runs_seed_reaches_init_sampling_and_augmentation(tiny_cvusa, tmp_pa
     """`seed=7` (not dataset.seed, which picks the synthetic world) seeds what a seed sweep must vary."""
     from conftest import TINY, compose_train
 
-    from geoloc.tasks import crossview_run
+    from geoloc.tasks.crossview import run as crossview_run
 
     seen = {}
     real_build = crossview.build

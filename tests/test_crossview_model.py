@@ -8,15 +8,15 @@ import torch.nn.functional as F
 from torchvision.models import vgg16
 
 from geoloc.models import vgg as vgg_module
-from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
+from conftest import small_model
+
 from geoloc.models.msae import MSAEHead, PlainHead
 from geoloc.models.vgg import MissingWeightsError, VGG16Trunk
 
-SMALL = dict(width=0.125, pretrained=False, dim=32, scale_channels=8, proj_channels=8, pool=4)
 
 
 def test_descriptors_are_l2_normalised_and_shaped():
-    model = CrossViewModel(CrossViewModelConfig(**SMALL))
+    model = small_model()
     q, r = model(torch.randn(2, 3, 64, 64), torch.randn(2, 3, 64, 64))
     assert q.shape == r.shape == (2, 32)
     assert torch.allclose(q.norm(dim=1), torch.ones(2), atol=1e-5)
@@ -25,7 +25,7 @@ def test_descriptors_are_l2_normalised_and_shaped():
 
 
 def test_branches_share_no_weights():
-    model = CrossViewModel(CrossViewModelConfig(**SMALL))
+    model = small_model()
     q_ids = {id(p) for p in model.query.parameters()}
     assert not q_ids & {id(p) for p in model.reference.parameters()}
 
@@ -69,7 +69,7 @@ def test_msae_head_matches_a_step_by_step_formulation():
 
 
 def test_attention_mask_reweights_the_features():
-    model = CrossViewModel(CrossViewModelConfig(**SMALL)).eval()
+    model = small_model().eval()
     x, other = torch.randn(1, 3, 64, 64), torch.randn(1, 3, 64, 64)
     desc, mask = model.query(x, return_attention=True)
     assert mask.shape == (1, 1, 4, 4) and (mask > 0).all() and (mask < 1).all() and mask.std() > 0
@@ -91,10 +91,16 @@ def test_attention_mask_reweights_the_features():
 
 @pytest.mark.parametrize("head", [MSAEHead, PlainHead])
 def test_head_defaults_are_the_configs(head):
-    built, cfg = head([4, 4, 4], dim=8), CrossViewModelConfig()
-    assert built.descriptor.proj.out_channels == cfg.proj_channels and built.descriptor.pool == cfg.pool
+    """The modules' defaults are the paper head's (conf/head/msae.yaml, fc.yaml)."""
+    import yaml
+
+    from conftest import CONF
+
+    built = head([4, 4, 4], dim=8)
+    cfg = yaml.safe_load((CONF / "head" / ("msae.yaml" if head is MSAEHead else "fc.yaml")).read_text())
+    assert built.descriptor.proj.out_channels == cfg["proj_channels"] and built.descriptor.pool == cfg["pool"]
     if head is MSAEHead:
-        assert built.scales[0].out_channels == cfg.scale_channels
+        assert built.scales[0].out_channels == cfg["scale_channels"]
 
 
 def test_plain_head_codes_conv5_3_alone():
@@ -112,7 +118,7 @@ def test_plain_head_codes_conv5_3_alone():
 
 
 def test_without_msae_the_head_is_plain():
-    model = CrossViewModel(CrossViewModelConfig(**{**SMALL, "msae": False}))
+    model = small_model(msae=False)
     assert not hasattr(model.query.head, "scales")
     assert model.query(torch.randn(1, 3, 64, 64)).shape == (1, 32)
 

@@ -7,24 +7,30 @@ import torch
 from test_gms_queue import brute_hardest
 from test_triplet import brute_force
 
-from geoloc.models.crossview import CrossViewModelConfig
-from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
+import conftest
+
+from geoloc.losses.gms_triplet_loss import gms_triplet
 
 # Batch-norm trunk in train mode: at initialisation a plain tiny VGG maps every image to nearly one descriptor,
 # where every term is log 2 whatever the formula; batch statistics spread the descriptors out.
-MODEL = CrossViewModelConfig(width=0.0625, pretrained=False, batchnorm=True, dim=8, scale_channels=4,
-                             proj_channels=4, pool=2)
 
 
-def tiny_task(**loss) -> CrossViewTask:
+def tiny_task(**loss):
     torch.manual_seed(0)
-    return CrossViewTask(MODEL, TripletLossConfig(**loss), OptimConfig())
+    return conftest.tiny_task(loss=loss)
+
+
+def step(task, data, epoch):
+    """One training step at `epoch`, as the trainer runs it: the epoch hook first."""
+    task.on_train_epoch_start(SimpleNamespace(epoch=epoch))
+    return task.training_step(data, SimpleNamespace(epoch=epoch))
 
 
 def batch(ids, seed):
     g = torch.Generator().manual_seed(seed)
     return {"query": torch.randn(len(ids), 3, 32, 32, generator=g),
-            "reference": torch.randn(len(ids), 3, 32, 32, generator=g), "index": torch.tensor(ids)}
+            "reference": torch.randn(len(ids), 3, 32, 32, generator=g), "index": torch.tensor(ids),
+            "label": torch.tensor(ids)}
 
 
 def descriptors(task, data):
@@ -42,32 +48,33 @@ def test_alpha_reaches_the_loss():
     task = tiny_task(alpha=1.0, queue_size=0)
     data = batch([0, 1, 2, 3], seed=0)
     query, reference = descriptors(task, data)
-    loss = task.training_step(data, SimpleNamespace(epoch=0))["loss"]
+    loss = step(task, data, 0)["loss"]
     torch.testing.assert_close(loss, brute_force(query, reference, alpha=1.0))
     assert abs(loss - brute_force(query, reference, alpha=10.0)) > 1e-2  # alpha matters on this batch
-    assert TripletLossConfig().alpha == 10.0  # CVM-Net / SAFA / the paper
+    assert gms_triplet(dim=8).alpha == 10.0  # CVM-Net / SAFA / the paper
 
 
 def test_queue_is_filled_after_the_loss_and_masks_the_querys_location():
     task = tiny_task(queue_size=8)
     first = batch([0, 1, 2, 3], seed=1)
     query, reference = descriptors(task, first)
-    out = task.training_step(first, SimpleNamespace(epoch=0))
+    out = step(task, first, 0)
     torch.testing.assert_close(out["loss"], brute_force(query, reference))  # the queue was still empty
-    assert len(task.queue) == 0  # training_step itself does not push
+    assert len(task.loss.queue) == 0  # training_step itself does not push
     task.on_train_batch_end(out)
     hardest = brute_hardest(query, reference, first["index"])
-    assert task.queue.ids[:4].tolist() == first["index"][hardest].tolist() and task.queue.ids[4:].eq(-1).all()
-    torch.testing.assert_close(task.queue.descriptors[:4], reference[hardest])
+    queue = task.loss.queue
+    assert queue.ids[:4].tolist() == first["index"][hardest].tolist() and queue.ids[4:].eq(-1).all()
+    torch.testing.assert_close(task.loss.queue.descriptors[:4], reference[hardest])
 
     second = batch([2, 3, 4, 5], seed=2)  # locations 2 and 3 meet their own entries in the queue
     query, reference = descriptors(task, second)
-    keep = keep_mask(task.queue.ids, second["index"])
+    keep = keep_mask(task.loss.queue.ids, second["index"])
     assert keep[:, :4].any() and not keep[:, :4].all()  # the masking decides something on this batch
-    expected = brute_force(query, reference, 10.0, task.queue.descriptors.clone(), keep)
-    loss = task.training_step(second, SimpleNamespace(epoch=0))["loss"]
+    expected = brute_force(query, reference, 10.0, task.loss.queue.descriptors.clone(), keep)
+    loss = step(task, second, 0)["loss"]
     torch.testing.assert_close(loss, expected)
-    assert abs(loss - brute_force(query, reference, 10.0, task.queue.descriptors.clone())) > 1e-3
+    assert abs(loss - brute_force(query, reference, 10.0, task.loss.queue.descriptors.clone())) > 1e-3
 
 
 def test_queue_start_epoch_keeps_the_queue_out_until_then():
@@ -76,19 +83,20 @@ def test_queue_start_epoch_keeps_the_queue_out_until_then():
     data = batch([0, 1, 2], seed=3)
     query, reference = descriptors(task, data)
     g = torch.Generator().manual_seed(4)
-    task.queue.push(torch.nn.functional.normalize(torch.randn(4, 8, generator=g), dim=1), torch.tensor([0, 7, 8, 9]))
-    stored = task.queue.ids.clone()
+    task.loss.queue.push(torch.nn.functional.normalize(torch.randn(4, 8, generator=g), dim=1),
+                         torch.tensor([0, 7, 8, 9]))
+    stored = task.loss.queue.ids.clone()
     in_batch = brute_force(query, reference)
     for epoch in (0, 1):
-        out = task.training_step(data, SimpleNamespace(epoch=epoch))
+        out = step(task, data, epoch)
         task.on_train_batch_end(out)
-        assert "push" not in out and torch.equal(task.queue.ids, stored)
+        assert torch.equal(task.loss.queue.ids, stored)
         torch.testing.assert_close(out["loss"], in_batch)
-    keep = keep_mask(task.queue.ids, data["index"])
-    with_queue = brute_force(query, reference, 10.0, task.queue.descriptors.clone(), keep)
+    keep = keep_mask(task.loss.queue.ids, data["index"])
+    with_queue = brute_force(query, reference, 10.0, task.loss.queue.descriptors.clone(), keep)
     assert abs(with_queue - in_batch) > 1e-3
-    out = task.training_step(data, SimpleNamespace(epoch=2))
+    out = step(task, data, 2)
     torch.testing.assert_close(out["loss"], with_queue)
     task.on_train_batch_end(out)
     hard = data["index"][brute_hardest(query, reference, data["index"])].tolist()
-    assert task.queue.ids.tolist() == [hard[2], 7, 8, 9, hard[0], hard[1]]  # FIFO: the oldest entry (0) goes
+    assert task.loss.queue.ids.tolist() == [hard[2], 7, 8, 9, hard[0], hard[1]]  # FIFO: the oldest entry (0) goes

@@ -28,7 +28,7 @@ from geoloc.data import crossview as data
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.tasks.crossview_run import build_task
+from geoloc.tasks.crossview.run import build_task
 
 BATCH = 4  # the global batch; each of 2 ranks gets BATCH // 2
 SGD_LR = 0.01  # moves the weights by up to ~0.04 a step: step 2 really runs on updated weights
@@ -88,7 +88,7 @@ def _train_steps(rank, world, port, root, out_dir):
         before = {n: p.detach().clone() for n, p in task.named_parameters()}
         trainer.engine.step(optimizer)
         task.on_train_batch_end(out)
-        queue = {k: v.clone() for k, v in task.queue.state_dict().items()}
+        queue = {k: v.clone() for k, v in task.loss.queue.state_dict().items()}
         weights = {n: p.detach().clone() for n, p in task.named_parameters()}
         moved = torch.stack([(weights[n] - w).abs().max() for n, w in before.items()]).max()
         records.append({"loss": out["loss"].detach().clone(), "grads": grads, "queue": queue, "weights": weights,

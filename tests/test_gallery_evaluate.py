@@ -11,7 +11,7 @@ from conftest import TINY, compose_evaluate, compose_train
 from geoloc import run
 from geoloc.config import ConfigError
 from geoloc.eval import GalleryIndex, recall_at_k
-from geoloc.tasks.crossview_gallery import recall_from_index
+from geoloc.tasks.crossview.gallery import recall_from_index
 
 
 @pytest.fixture

@@ -15,6 +15,15 @@ from geoloc.tasks.mmdip import retrieval
 from geoloc.tasks.mmdip.config import MMDIPConfig, TranslationConfig
 from geoloc.tasks.mmdip.networks import build_generator, generator_input
 
+
+def evaluate(cfg, ckpt, metrics_out=None) -> dict:
+    """mmdip.evaluate(cfg, state) with cfg.ckpt / cfg.metrics_out set, as geoloc.run.evaluate calls it."""
+    from omegaconf import open_dict
+
+    with open_dict(cfg):
+        cfg.ckpt, cfg.metrics_out = str(ckpt), str(metrics_out) if metrics_out else None
+    return mmdip.evaluate(cfg)
+
 TINY_MMDIP = [
     "task=mmdip", "dataset.image_size=[64,64]", "dataset.val_batch_size=4",
     "task.segmentation.epochs=1", "task.segmentation.batch_size=4",
@@ -112,13 +121,13 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread, monkeypatch)
     # evaluate() reuses the saved vocabulary and gallery and gives the same recall
     mtime = (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns
     out = tmp_path / "metrics.json"
-    again = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "best.pt", out)
+    again = evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "best.pt", out)
     assert {k: again[k] for k in vpr if "R@" in k} == {k: vpr[k] for k in vpr if "R@" in k}
     assert json.loads(out.read_text())["num_queries"] == 8
     assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns == mtime
     # other weights: the gallery is coded again, the vocabulary (image settings only) is kept
     vocab_mtime = (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns
-    mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "last.pt")
+    evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "last.pt")
     assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns != mtime
     assert (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns == vocab_mtime
 
@@ -129,7 +138,7 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread, monkeypatch)
     for i in range(2):
         cv2.imwrite(str(ec / f"{i}.png"), rng.integers(0, 255, (60, 240, 3), np.uint8))
     ec_cfg = compose_train([*TINY_MMDIP, "dataset.name=emptycities", f"dataset.root={ec}", "dataset.split=null"])
-    scores = mmdip.evaluate(ec_cfg, run / "phase2" / "best.pt", tmp_path / "ec.json")
+    scores = evaluate(ec_cfg, run / "phase2" / "best.pt", tmp_path / "ec.json")
     assert {"L1", "L2", "PSNR", "SSIM", "num_images"} <= set(scores) and scores["num_images"] == 2
-    seg = mmdip.evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase1" / "best.pt")
+    seg = evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase1" / "best.pt")
     assert {"PA", "MPA", "MIoU", "FWIoU"} <= set(seg)

@@ -11,7 +11,7 @@ import pytest
 import torch
 from conftest import REPO, compose_evaluate, compose_train
 from test_dynamic_readers import write_tiny_dynamic
-from test_mmdip_pipeline import TINY_MMDIP, one_thread  # noqa: F401  (one_thread: a fixture)
+from test_mmdip_pipeline import TINY_MMDIP, evaluate, one_thread  # noqa: F401  (one_thread: a fixture)
 
 from geoloc import run
 from geoloc.config import ConfigError
@@ -127,4 +127,4 @@ def test_gallery_from_labels_where_the_reader_has_them(tiny_run, one_thread, tmp
     phase1 = ckpt.parent.parent / "phase1" / "best.pt"
     cfg = compose_evaluate([f"ckpt={phase1}", "dataset=emptycities", f"dataset.root={tmp_path / 'emptycities'}"])
     with pytest.raises(ConfigError, match="phase-1 .* dataset=emptycities has none"):
-        mmdip.evaluate(cfg, phase1)
+        evaluate(cfg, phase1)

@@ -13,30 +13,33 @@ import contextlib
 import pytest
 import torch
 from conftest import compose_train, write_cvusa
+from omegaconf import OmegaConf
 
+from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.data import crossview as data
 from geoloc.data.synthetic.config import resolve
 from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
-from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
 from geoloc.tasks.mmdip.config import GENERATOR_LOSS_WEIGHTS
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.pipeline import parse
 from geoloc.tasks.mmdip.segmentation import SegmentationTask
 
 CROSSVIEW = {"paper_cvusa": "cvusa", "paper_cvact": "cvact"}
-TINY_VGG = CrossViewModelConfig(width=0.0625, pretrained=False, dim=16, scale_channels=4, proj_channels=4, pool=2)
 FRACTIONS = [0.05, 0.3, 0.05, 0.1, 0.02, 0.3, 0.1, 0.08]
 
 
 def crossview_sections(experiment: str, root, overrides=()) -> dict:
-    """The experiment's groups through the cross-view runner's schemas (unknown keys and bad values fail)."""
+    """The experiment's groups as the cross-view runner reads them (unknown keys and bad values fail)."""
     cfg = compose_train([f"experiment={experiment}", f"dataset.root={root}", f"run_dir={root}", *overrides])
-    return {"dataset": checked(cfg.dataset, data.CrossViewDataConfig, "dataset"),
-            "model": checked(cfg.model, CrossViewModelConfig, "model"),
-            "loss": checked(cfg.loss, TripletLossConfig, "loss"),
-            "optim": checked(cfg.optim, OptimConfig, "optim"),
+    plain = lambda section: OmegaConf.create(OmegaConf.to_container(section, resolve=True))  # noqa: E731
+    data.check_reader_keys(cfg.dataset)
+    registry.check("loss", cfg.loss, runtime=("dim",))
+    registry.check("optimizer", cfg.optim, runtime=("params", "max_epochs"))
+    return {"dataset": data.shared_config(cfg.dataset), "model": checked(cfg.model, CrossViewModelConfig, "model"),
+            "backbone": plain(cfg.backbone), "head": plain(cfg.head), "loss": plain(cfg.loss),
+            "optim": plain(cfg.optim), "sampler": plain(cfg.sampler),
             "trainer": checked(cfg.trainer, TrainerConfig, "trainer")}
 
 
@@ -47,8 +50,11 @@ def test_crossview_paper_config_holds_the_msae_numbers(experiment, tmp_path):
     assert d.name == CROSSVIEW[experiment]
     assert (d.alignment, d.aerial_size, d.batch_size) == ("ipt", 288, 64)  # IPT query and aerial both 288x288
     assert d.rotation_deg == 10.0 and d.color_jitter == 0.0 and not d.joint_flip_rotate
-    assert (m.width, m.pretrained, m.batchnorm, m.msae, m.dim) == (1.0, True, False, True, 4096)
-    assert (loss.alpha, loss.queue_size, loss.queue_start_epoch) == (10.0, 1024, 0)
+    b, h = c["backbone"], c["head"]
+    assert (b.name, b.width, b.pretrained, b.batchnorm) == ("vgg16", 1.0, True, False)
+    assert (h.name, h.scale_channels, h.proj_channels, h.pool) == ("msae", 64, 64, 8)
+    assert (m.dim, m.shared) == (4096, False) and c["sampler"].name == "shuffle"
+    assert (loss.name, loss.alpha, loss.queue_size, loss.queue_start_epoch) == ("gms_triplet", 10.0, 1024, 0)
     assert (opt.name, opt.lr, tuple(opt.betas), opt.weight_decay) == ("adam", 1e-4, (0.9, 0.999), 0.0)
     assert (opt.step_size, opt.gamma) == (80, 0.1)
     assert c["trainer"].max_epochs == 100
@@ -57,7 +63,9 @@ def test_crossview_paper_config_holds_the_msae_numbers(experiment, tmp_path):
 @pytest.mark.parametrize("experiment", sorted(CROSSVIEW))
 def test_crossview_paper_schedule_divides_lr_by_10_at_epoch_80(experiment, tmp_path):
     c = crossview_sections(experiment, tmp_path)
-    (opt,), (sched,) = CrossViewTask(TINY_VGG, c["loss"], c["optim"]).configure_optimizers()
+    from conftest import tiny_task
+
+    (opt,), (sched,) = tiny_task(loss=dict(c["loss"]), optim=dict(c["optim"])).configure_optimizers()
     assert opt.param_groups[0]["betas"] == (0.9, 0.999)
     lrs = []
     for _ in range(c["trainer"].max_epochs):  # the trainer steps the scheduler once per epoch

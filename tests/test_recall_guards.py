@@ -13,8 +13,8 @@ import torch
 from geoloc.eval import GalleryIndex, recall_at_k
 from geoloc.eval.descriptors import UNIT_TOLERANCE, unit_rows
 from geoloc.eval.recall import retrieval_ranks
-from geoloc.tasks import crossview_gallery
-from geoloc.tasks.crossview_gallery import GalleryConfig, recall_from_index
+from geoloc.tasks.crossview import gallery as crossview_gallery
+from geoloc.tasks.crossview.gallery import GalleryConfig, recall_from_index
 
 BACKENDS = ["torch", pytest.param("faiss", marks=pytest.mark.skipif(
     not __import__("importlib").util.find_spec("faiss"), reason="faiss-cpu not installed"))]
@@ -113,7 +113,7 @@ def test_all_zero_rows_raise():
 def gallery_eval(monkeypatch, tmp_path, query, reference, **cfg):
     """crossview_gallery.evaluate with encode() replaced by the given descriptors (no network needed)."""
     monkeypatch.setattr(crossview_gallery, "encode",
-                        lambda task, trainer, dataset, batch_size, keys=("query", "reference"):
+                        lambda task, engine, dataset, batch_size, keys=("query", "reference"):
                         {k: {"query": query, "reference": reference}[k] for k in keys})
     task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
     trainer = SimpleNamespace(device=torch.device("cpu"))
@@ -166,12 +166,10 @@ def test_gallery_path_refuses_a_gallery_saved_without_its_checks(monkeypatch, tm
 
 
 def test_validation_and_gallery_paths_give_the_same_metrics(monkeypatch, tmp_path):
-    from geoloc.models.crossview import CrossViewModelConfig
-    from geoloc.tasks.crossview import CrossViewTask, OptimConfig, TripletLossConfig
+    from conftest import tiny_task
 
     query, reference = unit_pairs()
-    task = CrossViewTask(CrossViewModelConfig(width=0.0625, pretrained=False, dim=16), TripletLossConfig(),
-                         OptimConfig())
+    task = tiny_task(dim=16)
     validation = task.validation_epoch_end({"query": query, "reference": reference})
     gallery = gallery_eval(monkeypatch, tmp_path, query, reference)
     assert {k: gallery[k] for k in validation} == validation

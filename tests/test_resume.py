@@ -14,7 +14,7 @@ from geoloc import run
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import resume
-from geoloc.tasks.crossview_run import INIT_FROM_FRESH, build_task
+from geoloc.tasks.crossview.run import INIT_FROM_FRESH, build_task
 
 
 def test_config_differences_skip_only_the_allow_list():
@@ -53,16 +53,17 @@ def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(fini
     root, finished = finished_run
     source_path = finished / "last.pt"
     source = ckpt_io.load(source_path)
-    assert (source["task"]["queue.ids"] >= 0).any()  # the source run filled its GMS queue
+    assert (source["task"]["loss.queue.ids"] >= 0).any()  # the source run filled its GMS queue
 
     # the weights arrive; the GMS queue (the source data's places) starts empty
     cfg = train_cfg(root, tmp_path / "x")
     task = build_task(cfg)
     record = resume.init_from(task, source_path, fresh=INIT_FROM_FRESH)
     for key, value in task.state_dict().items():
-        if not key.startswith("queue."):
+        if not key.startswith("loss."):
             assert torch.equal(value, source["task"][key]), key
-    assert (task.queue.ids == -1).all() and int(task.queue.ptr) == 0 and not task.queue.descriptors.any()
+    queue = task.loss.queue
+    assert (queue.ids == -1).all() and int(queue.ptr) == 0 and not queue.descriptors.any()
     assert record["sha256"] == hashlib.sha256(source_path.read_bytes()).hexdigest()
 
     # a whole run: new lr, another queue length, epoch 0, its own best, the source written down

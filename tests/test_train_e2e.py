@@ -14,8 +14,8 @@ from geoloc.config import checked
 from geoloc.data import crossview as data
 from geoloc.engine import NonFiniteLossError
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.tasks import crossview_run
-from geoloc.tasks.crossview import CrossViewTask
+from geoloc.tasks.crossview import run as crossview_run
+from geoloc.tasks.crossview.task import CrossViewTask
 
 
 def train_cfg(root, run_dir, *extra):
@@ -143,7 +143,7 @@ def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
     task = crossview_run.build_task(stored)
     task.load_state_dict(state["task"])
     real = OmegaConf.merge(stored.dataset, {"root": str(REALDATA / "cvusa_mini")})
-    pairs = data.build(checked(real, data.CrossViewDataConfig, "dataset"), "val", train=False)
+    pairs = data.build(real, "val", train=False)
     with torch.no_grad():
         query, reference = task.eval().model(torch.stack([pairs[i]["query"] for i in range(len(pairs))]),
                                              torch.stack([pairs[i]["reference"] for i in range(len(pairs))]))
@@ -154,11 +154,9 @@ def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
 
 
 def test_a_collapsed_network_scores_zero_not_one_hundred():
-    from geoloc.models.crossview import CrossViewModelConfig
-    from geoloc.tasks.crossview import OptimConfig, TripletLossConfig
+    from conftest import tiny_task
 
-    task = CrossViewTask(CrossViewModelConfig(width=0.0625, pretrained=False, dim=8), TripletLossConfig(),
-                         OptimConfig())
+    task = tiny_task(dim=8, batchnorm=False)
     same = torch.nn.functional.normalize(torch.ones(6, 8), dim=1)
     with pytest.warns(UserWarning, match="collapsed"):
         metrics = task.validation_epoch_end({"query": same, "reference": same.clone()})

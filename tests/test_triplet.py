@@ -148,3 +148,44 @@ def test_single_pair_without_negatives_is_zero():
 def test_bad_inputs(kwargs, match):
     with pytest.raises(ValueError, match=match):
         soft_margin_triplet(**kwargs)
+
+
+def brute_force_labelled(query, reference, labels, alpha=10.0):
+    """Every triplet whose negative shows another place than the anchor's, written out one by one."""
+    def d(a, b):
+        return ((a - b) ** 2).sum()
+
+    terms = []
+    for i in range(len(query)):
+        for j in range(len(query)):
+            if i == j or labels[i] == labels[j]:
+                continue
+            terms.append(torch.log1p(torch.exp(alpha * (d(query[i], reference[i]) - d(query[i], reference[j])))))
+            terms.append(torch.log1p(torch.exp(alpha * (d(reference[i], query[i]) - d(reference[i], query[j])))))
+    return torch.stack(terms).mean()
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_pairs_of_one_place_are_not_each_others_negatives(dtype, tol):
+    """Two VIGOR panoramas with the same positive tile: their terms against each other are left out."""
+    g = torch.Generator().manual_seed(5)
+    query = F.normalize(torch.randn(7, 6, generator=g, dtype=dtype), dim=1)
+    reference = F.normalize(torch.randn(7, 6, generator=g, dtype=dtype), dim=1)
+    labels = torch.tensor([0, 1, 1, 2, 3, 3, 3])
+    loss = soft_margin_triplet(query, reference, labels=labels)
+    torch.testing.assert_close(loss, brute_force_labelled(query, reference, labels), atol=tol, rtol=tol)
+    assert abs(loss - brute_force(query, reference)) > 1e-3  # the labels change the loss on this batch
+
+
+def test_distinct_labels_give_the_unlabelled_loss_bit_for_bit():
+    g = torch.Generator().manual_seed(6)
+    query = F.normalize(torch.randn(9, 5, generator=g), dim=1)
+    reference = F.normalize(torch.randn(9, 5, generator=g), dim=1)
+    assert torch.equal(soft_margin_triplet(query, reference, labels=torch.arange(9) * 3),
+                       soft_margin_triplet(query, reference))
+
+
+def test_labels_of_the_wrong_shape_are_refused():
+    x = F.normalize(torch.randn(4, 3), dim=1)
+    with pytest.raises(ValueError, match=r"labels must have shape \(4,\)"):
+        soft_margin_triplet(x, x, labels=torch.arange(3))

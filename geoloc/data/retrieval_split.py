@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+QUERY_VIEWS = ("panorama", "sphere", "image", "aerial")
+
 
 @dataclass(frozen=True)
 class RetrievalSplit:
@@ -22,7 +24,12 @@ class RetrievalSplit:
     semi_positives (Q, S) int or None: further references that hold the query's place, -1 for none;
     query_latlon (Q, 2), reference_latlon (N, 2) float degrees or None (VIGOR: from the file names);
     query_labels (Q,), reference_labels (N,) int or None: place / building ids, given together; a reference is
-    relevant to a query when their labels are equal (University-1652's AP counts all of them).
+    relevant to a query when their labels are equal (University-1652's AP counts all of them);
+    query_view: what a query image is, so the data module knows how to align it: "panorama" (CVUSA's horizon band),
+    "sphere" (a full-sphere equirectangular panorama, cropped to its horizon band: CVACT, VIGOR) or "image" (a
+    perspective photo, e.g. a University-1652 drone view, which no polar transform applies to) or "aerial" (the
+    query is the aerial image and the references are photos: University-1652's satellite -> drone; each image is
+    still encoded by its own view's branch).
     """
 
     name: str
@@ -35,10 +42,13 @@ class RetrievalSplit:
     reference_latlon: np.ndarray | None = None
     query_labels: np.ndarray | None = None
     reference_labels: np.ndarray | None = None
+    query_view: str = "panorama"  # panorama | sphere | image | aerial: see above
 
     def __post_init__(self):
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731  (frozen: set once, here)
         put("root", Path(self.root))
+        if self.query_view not in QUERY_VIEWS:
+            raise ValueError(f"{self._where()}: query_view must be one of {QUERY_VIEWS}, got {self.query_view!r}")
         put("queries", [Path(p) for p in self.queries])
         put("references", [Path(p) for p in self.references])
         q, n = len(self.queries), len(self.references)
@@ -63,6 +73,16 @@ class RetrievalSplit:
                 raise ValueError(f"{self._where()}: query {i} ({self.queries[i]}) has label {self.query_labels[i]} "
                                  f"but its positive reference {self.positives[i]} has label "
                                  f"{self.reference_labels[self.positives[i]]} ({len(wrong)} such queries)")
+
+    @property
+    def one_to_one(self) -> bool:
+        """Query i matches reference i and nothing else: CVUSA / CVACT."""
+        return (self.num_queries == self.num_references and self.semi_positives is None
+                and self.query_labels is None and bool((self.positives == np.arange(self.num_queries)).all()))
+
+    def labels(self) -> np.ndarray:
+        """(Q,) the place label of each query: its positive reference (queries of one place share it)."""
+        return self.positives
 
     @property
     def num_queries(self) -> int:

@@ -13,7 +13,7 @@ from torch import nn
 
 
 class Task(nn.Module):
-    #: validation metric that selects best.pt (higher is better)
+    #: the validation metric that selects best.pt when trainer.monitor is not set (trainer.monitor_mode: max/min)
     monitor: str = "R@1"
     #: False for tasks with several optimizers that step themselves (GANs); they call engine.backward/step
     automatic_optimization: bool = True
@@ -28,6 +28,17 @@ class Task(nn.Module):
 
     def on_train_batch_end(self, outputs: dict[str, Any]) -> None:
         """Called after the optimizer step (e.g. to push to a queue)."""
+
+    def on_train_epoch_start(self, engine: Any) -> None:
+        """Called before each training epoch (e.g. to give a hard-sample sampler fresh descriptors)."""
+
+    def train_dataloader(self, dataset, batch_size: int, engine: Any):
+        """The training loader; override to bring a batch sampler (engine.loader(..., batch_sampler=...))."""
+        return engine.loader(dataset, batch_size, train=True)
+
+    def val_dataloaders(self, dataset, batch_size: int, engine: Any):
+        """One DataLoader, or {name: DataLoader} when validation reads several sets (queries and a gallery)."""
+        return engine.loader(dataset, batch_size, train=False)
 
     def validation_step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Per-sample outputs for one validation batch (first dim = batch)."""

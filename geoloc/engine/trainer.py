@@ -47,6 +47,8 @@ class TrainerConfig:
     channels_last: bool = False
     compile: bool = False
     progress: bool = True
+    monitor: str | None = None  # the validation metric that selects best.pt; null = the task's default
+    monitor_mode: str = "max"  # max | min
 
     def __post_init__(self):
         if self.max_epochs < 1:
@@ -59,6 +61,8 @@ class TrainerConfig:
             raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"trainer.device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        if self.monitor_mode not in ("max", "min"):
+            raise ValueError(f"trainer.monitor_mode must be 'max' or 'min', got {self.monitor_mode!r}")
 
 
 def seed_everything(seed: int) -> None:
@@ -89,6 +93,17 @@ class Engine:
     @property
     def global_step(self) -> int:
         return self._t.global_step
+
+    @property
+    def seed(self) -> int:
+        return self._t.cfg.seed
+
+    def loader(self, dataset, batch_size: int, train: bool, batch_sampler=None) -> DataLoader:
+        """A DataLoader as the trainer builds them (seeded, DDP-sharded, workers from trainer config)."""
+        return self._t.loader(dataset, batch_size, train, batch_sampler)
+
+    def to_device(self, batch: dict) -> dict:
+        return self._t._to_device(batch)
 
     def autocast(self):
         return self._t.autocast()
@@ -123,7 +138,8 @@ class Trainer:
         self.logger = RunLogger(self.run_dir)
         self.epoch = 0
         self.global_step = 0
-        self.best_metric = -math.inf
+        self.sign = 1.0 if cfg.monitor_mode == "max" else -1.0  # best = the largest sign * metric
+        self.best_metric = -math.inf  # sign * the best monitored value so far
         self.best: dict[str, float] = {}
         self.init_from: dict | None = None  # where the weights of an init_from= run came from (resume.init_from)
         self.engine = Engine(self)
@@ -142,16 +158,19 @@ class Trainer:
                 f"trainer.grad_clip, or use trainer.precision=32."
             )
 
-    def loader(self, dataset: Dataset, batch_size: int, train: bool) -> DataLoader:
+    def loader(self, dataset: Dataset, batch_size: int, train: bool, batch_sampler=None) -> DataLoader:
+        """Seeded EpochSampler batches, or the task's `batch_sampler` (geoloc/data/samplers.py) when given."""
         if batch_size < 1:
             raise ValueError(f"batch size must be >= 1, got {batch_size}")
+        workers = self.cfg.num_workers
+        common = dict(num_workers=workers, pin_memory=self.cfg.pin_memory and self.device.type == "cuda",
+                      persistent_workers=self.cfg.persistent_workers and workers > 0)
+        if batch_sampler is not None:
+            return DataLoader(dataset, batch_sampler=batch_sampler, **common)
         sampler = EpochSampler(len(dataset), shuffle=train, seed=self.cfg.seed,
                                rank=dist.rank(), world_size=dist.world_size())
-        workers = self.cfg.num_workers
-        return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
-                          pin_memory=self.cfg.pin_memory and self.device.type == "cuda",
-                          persistent_workers=self.cfg.persistent_workers and workers > 0,
-                          drop_last=train and len(sampler) >= 2 * batch_size)
+        return DataLoader(dataset, batch_size=batch_size, sampler=sampler,
+                          drop_last=train and len(sampler) >= 2 * batch_size, **common)
 
     def _to_device(self, batch: dict) -> dict:
         out = {}
@@ -174,7 +193,8 @@ class Trainer:
             "global_step": self.global_step,
             "best_metric": self.best_metric,
             "best": self.best,
-            "monitor": task.monitor,
+            "monitor": self.monitor(task),
+            "monitor_mode": self.cfg.monitor_mode,
             "config": self.config_yaml,
             "init_from": self.init_from,
             "rng": ckpt_io.rng_state(),
@@ -218,13 +238,17 @@ class Trainer:
                 broadcast_buffers=False)
         if self.cfg.compile:
             model = torch.compile(model)
-        train_loader = self.loader(train_set, batch_size, train=True)
-        val_loader = self.loader(val_set, val_batch_size or batch_size, train=False) if val_set else None
+        train_loader = task.train_dataloader(train_set, batch_size, self.engine)
+        val_loader = task.val_dataloaders(val_set, val_batch_size or batch_size, self.engine) if val_set else None
+        monitor = self.monitor(task)
 
         last_val: dict[str, float] = {}
         for epoch in range(self.epoch, self.cfg.max_epochs):
             self.epoch = epoch
-            train_loader.sampler.set_epoch(epoch)
+            task.on_train_epoch_start(self.engine)
+            for sampler in (train_loader.sampler, train_loader.batch_sampler):
+                if hasattr(sampler, "set_epoch"):
+                    sampler.set_epoch(epoch)
             train_logs = self._train_epoch(model, task, train_loader, optimizers)
             for s in schedulers:
                 s.step()
@@ -234,9 +258,11 @@ class Trainer:
                 last_val = self.validate(task, val_loader)
                 self.logger.log(last_val, self.global_step, prefix="val/")
                 self._print_metrics(epoch, last_val)
-            improved = validate and last_val.get(task.monitor, -math.inf) > self.best_metric
+            if validate and monitor not in last_val:
+                raise KeyError(f"trainer.monitor={monitor!r} is not among the validation metrics {list(last_val)}")
+            improved = validate and self.sign * last_val[monitor] > self.best_metric
             if improved:
-                self.best_metric = last_val[task.monitor]
+                self.best_metric = self.sign * last_val[monitor]
                 self.best = {**last_val, "epoch": epoch}
             self.logger.log({**train_logs, "epoch": epoch}, self.global_step, prefix="train/epoch_")
             if dist.is_main():
@@ -287,30 +313,41 @@ class Trainer:
         return {"loss": dist.reduce_mean(total / max(count, 1), self.device),
                 "samples_per_s": samples * dist.world_size() / (time.perf_counter() - t0)}
 
+    def monitor(self, task: Task) -> str:
+        return self.cfg.monitor or task.monitor
+
     @torch.no_grad()
-    def validate(self, task: Task, loader: DataLoader) -> dict[str, float]:
-        """Run validation_step over the (sharded) set, gather in dataset order, then validation_epoch_end."""
+    def validate(self, task: Task, loaders: DataLoader | dict[str, DataLoader]) -> dict[str, float]:
+        """Run validation_step over each (sharded) loader, gather in dataset order, then validation_epoch_end.
+
+        One loader: validation_epoch_end gets its outputs {key: tensor}. Several (a dict from the task's
+        val_dataloaders): it gets {loader name: {key: tensor}}, and validation_step is told the loader's name."""
         task.eval()
+        named = loaders if isinstance(loaders, dict) else {"val": loaders}
+        outputs = {name: self._run_validation(task, loader, name if len(named) > 1 else None)
+                   for name, loader in named.items()}
+        metrics = task.validation_epoch_end(outputs if len(named) > 1 else next(iter(outputs.values())))
+        task.train()
+        return metrics
+
+    def _run_validation(self, task: Task, loader: DataLoader, name: str | None) -> dict[str, torch.Tensor]:
         chunks: dict[str, list[torch.Tensor]] = {}
-        for batch in tqdm(loader, desc="validate", leave=False, dynamic_ncols=True,
+        for batch in tqdm(loader, desc=f"validate {name or ''}".strip(), leave=False, dynamic_ncols=True,
                           disable=not (self.cfg.progress and dist.is_main())):
             batch = self._to_device(batch)
             with self.autocast():
-                out = task.validation_step(batch)
+                out = task.validation_step(batch) if name is None else task.validation_step(batch, name)
             for k, v in out.items():
                 chunks.setdefault(k, []).append(v.float() if v.is_floating_point() else v)
         outputs = {k: dist.all_gather_variable(torch.cat(v)) for k, v in chunks.items()}
         if dist.is_dist():  # shards are strided over ranks: put the samples back in dataset order
             order = torch.argsort(outputs["index"])
             outputs = {k: v[order] for k, v in outputs.items()}
-        metrics = task.validation_epoch_end(outputs)
-        task.train()
-        return metrics
+        return outputs
 
     def _print_metrics(self, epoch: int, metrics: dict[str, float]) -> None:
         if dist.is_main():
-            text = "  ".join(f"{k} {v * 100:.2f}" if k.startswith("R@") else f"{k} {v:.4g}"
-                             for k, v in metrics.items() if isinstance(v, float))
+            text = "  ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float))
             tqdm.write(f"[epoch {epoch}] {text}")
 
 

@@ -80,15 +80,17 @@ def check_descriptors(query: torch.Tensor, reference: torch.Tensor | None = None
     return descriptor_spread(reference)
 
 
-def guarded_recall(compute: Callable[[], dict], reference_spread: float, ks: Iterable[int] = (1, 5, 10)) -> dict:
-    """``compute()``'s recall dict plus ``reference_spread``; on a collapse, R@K = 0 with a warning instead.
+def guarded_recall(compute: Callable[[], dict], reference_spread: float, ks: Iterable[int] = (1, 5, 10),
+                   collapsed: dict | None = None) -> dict:
+    """``compute()``'s recall dict plus ``reference_spread``; on a collapse, R@K = 0 (or ``collapsed``, the worst
+    value of every metric compute() would give) with a warning instead.
 
     ``compute`` is not called on a collapse (an all-zero collapse could not be ranked at all).
     """
     if reference_spread < COLLAPSE_SPREAD:
         warnings.warn(f"reference descriptors have collapsed (spread {reference_spread:.2e} < {COLLAPSE_SPREAD}): "
                       "every image maps to about one point, so recall is meaningless here and is reported as 0")
-        metrics = {**{f"R@{k}": 0.0 for k in ks}, "R@1%": 0.0}
+        metrics = dict(collapsed) if collapsed is not None else {**{f"R@{k}": 0.0 for k in ks}, "R@1%": 0.0}
     else:
         metrics = compute()
     metrics["reference_spread"] = reference_spread

@@ -89,3 +89,16 @@ def split_metrics(query, reference, split: RetrievalSplit, ks: Iterable[int] = (
                              "describe every image of the split, in its order")
     return retrieval_metrics(query, reference, split.positives, split.semi_positives, split.query_latlon,
                              split.reference_latlon, split.query_labels, split.reference_labels, ks)
+
+
+def collapsed_split_metrics(split: RetrievalSplit, ks: Iterable[int] = (1, 5, 10)) -> dict[str, float]:
+    """What `split_metrics` reports when the gallery has collapsed onto one point (geoloc.eval.descriptors): every
+    query would "find" its place through ties, so each score is its worst value rather than a perfect one."""
+    out = {**{f"R@{k}": 0.0 for k in ks}, "R@1%": 0.0}
+    if split.semi_positives is not None:
+        out["hit_rate"] = 0.0
+    if split.query_labels is not None:
+        out["AP"] = 0.0
+    if split.query_latlon is not None and split.reference_latlon is not None:
+        out.update({"median_m": float("inf"), "within_10m": 0.0, "within_25m": 0.0, "within_50m": 0.0})
+    return out

@@ -15,6 +15,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from geoloc.registry import register
+
 __all__ = ["InfoNCELoss", "info_nce"]
 
 
@@ -82,3 +84,11 @@ class InfoNCELoss(nn.Module):
 
     def forward(self, query: torch.Tensor, reference: torch.Tensor, labels: torch.Tensor | None = None):
         return info_nce(query, reference, self.temperature, labels, self.label_smoothing)
+
+
+@register("loss", "infonce")
+def infonce(temperature: float = 0.07, learn_temperature: bool = True, label_smoothing: float = 0.1) -> InfoNCELoss:
+    """Sample4Geo's loss: symmetric InfoNCE, temperature learned from 0.07 (CLIP), label smoothing 0.1."""
+    if not 0.0 <= label_smoothing < 1.0:
+        raise ValueError(f"loss.label_smoothing must be in [0, 1), got {label_smoothing}")
+    return InfoNCELoss(temperature, learn_temperature, label_smoothing)

@@ -14,6 +14,7 @@ def soft_margin_triplet(
     alpha: float = 10.0,
     extra_negatives: torch.Tensor | None = None,
     extra_mask: torch.Tensor | None = None,
+    labels: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Mean of log(1 + exp(alpha * (d_pos - d_neg))) over every triplet, with d = ||a - b||^2 = 2 - 2 a.b.
 
@@ -24,6 +25,9 @@ def soft_margin_triplet(
         extra_negatives: Q x D extra reference negatives (the GMS queue), used for the query -> reference
             direction only: one term per (query, extra negative) pair.
         extra_mask: B x Q bool, True = keep the term (False drops e.g. same-location or empty queue slots).
+        labels: (B,) place labels. Two pairs of the same place (e.g. two VIGOR panoramas whose positive is the same
+            tile) are not each other's negatives: their in-batch terms are left out. With distinct labels (the
+            one-to-one datasets) nothing is left out and the result is the unlabelled one, bit for bit.
 
     In the batch, both directions count for every ordered pair i != j: the query anchor i against reference
     negative j, and the reference anchor i against query negative j; 2B(B-1) terms. The result is the mean over
@@ -39,11 +43,17 @@ def soft_margin_triplet(
 
     dist = 2 - 2 * query @ reference.t()  # dist[i, j] = d(query i, reference j)
     d_pos = dist.diagonal()
-    off_diagonal = ~torch.eye(b, dtype=torch.bool, device=dist.device)
-    q_to_r = F.softplus(alpha * (d_pos[:, None] - dist))[off_diagonal]  # query anchor i, reference negative j
-    r_to_q = F.softplus(alpha * (d_pos[None, :] - dist))[off_diagonal]  # reference anchor j, query negative i
-    total = q_to_r.sum() + r_to_q.sum()
+    negative = ~torch.eye(b, dtype=torch.bool, device=dist.device)
     count = 2 * b * (b - 1)
+    if labels is not None:
+        if labels.shape != (b,):
+            raise ValueError(f"labels must have shape ({b},), got {tuple(labels.shape)}")
+        if labels.unique().numel() < b:  # only then is anything left out (and the 1:1 path stays as it was)
+            negative = negative & (labels[:, None] != labels[None, :]).to(dist.device)
+            count = 2 * int(negative.sum())
+    q_to_r = F.softplus(alpha * (d_pos[:, None] - dist))[negative]  # query anchor i, reference negative j
+    r_to_q = F.softplus(alpha * (d_pos[None, :] - dist))[negative]  # reference anchor j, query negative i
+    total = q_to_r.sum() + r_to_q.sum()
 
     if extra_negatives is not None:
         if extra_negatives.ndim != 2 or extra_negatives.shape[1] != query.shape[1]:

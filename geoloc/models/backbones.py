@@ -3,6 +3,7 @@ B×3×H×W image to multi-scale maps, fine to coarse (the heads read them; docs/
 
 from __future__ import annotations
 
+from geoloc.models import timm_backbone  # noqa: F401  (registers "timm"; timm itself is imported on use)
 from geoloc.models.vgg import VGG16Trunk
 from geoloc.registry import register
 

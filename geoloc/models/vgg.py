@@ -26,7 +26,7 @@ def imagenet_weights_path(weights_path: str | None = None, filename: str = IMAGE
     if weights_path:
         path = Path(weights_path).expanduser()
         if not path.is_file():
-            raise MissingWeightsError(f"model.weights_path={weights_path!r} does not exist. Point it at a VGG16 "
+            raise MissingWeightsError(f"backbone.weights_path={weights_path!r} does not exist. Point it at a VGG16 "
                                       f"ImageNet state dict such as torchvision's {filename}.")
         return path
     path = Path(torch.hub.get_dir()) / "checkpoints" / filename
@@ -34,7 +34,7 @@ def imagenet_weights_path(weights_path: str | None = None, filename: str = IMAGE
         raise MissingWeightsError(
             f"ImageNet VGG16 weights not found offline at {path}. Download {filename} (torchvision's "
             f"ImageNet VGG16 weights) on a connected machine and copy it there, or set "
-            f"model.weights_path=/path/to/{filename}; or train from scratch with model.pretrained=false.")
+            f"backbone.weights_path=/path/to/{filename}; or train from scratch with backbone.pretrained=false.")
     return path
 
 
@@ -49,7 +49,7 @@ def load_imagenet_features(features: nn.Sequential, weights_path: str | None = N
     missing, unexpected = features.load_state_dict(conv, strict=False)
     if missing or unexpected:
         raise ValueError(f"{path} does not fit this VGG16 trunk (missing {missing[:3]}, unexpected "
-                         f"{unexpected[:3]}). ImageNet weights need model.width=1.0.")
+                         f"{unexpected[:3]}). ImageNet weights need backbone.width=1.0.")
 
 
 class VGG16Trunk(nn.Module):
@@ -74,7 +74,7 @@ class VGG16Trunk(nn.Module):
             features = _scaled(features, width)
         if pretrained:
             if width != 1.0:
-                raise ValueError("model.pretrained=true needs model.width=1.0 (ImageNet weights are full width).")
+                raise ValueError("backbone.pretrained=true needs backbone.width=1.0 (ImageNet weights are full width).")
             load_imagenet_features(features, weights_path, IMAGENET_BN_FILE if batchnorm else IMAGENET_FILE)
         self.features = features
         self.taps = [i for _, i in taps]

@@ -33,7 +33,8 @@ def build_task(cfg: DictConfig) -> CrossViewTask:
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    data.shared_config(cfg.dataset)  # the shared dataset keys fail here; the reader's own when it is built
+    data.shared_config(cfg.dataset)  # bad dataset keys fail here, before anything is read or generated
+    data.check_reader_keys(cfg.dataset)
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
     if cfg.get("ckpt"):
         resume.checked_resume(cfg)  # before any data is generated or checked

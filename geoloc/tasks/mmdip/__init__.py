@@ -1,8 +1,8 @@
 """MMDIP: place recognition in dynamic scenes ("Multi-modal Visual Place Recognition in Dynamics-Invariant
 Perception Space", Wu, Wang, Sun), as a task on the geoloc engine. See docs/mmdip.md.
 
-`train(cfg, run_dir)` runs phase 1 -> phase 2 -> VPR evaluation; `evaluate(cfg, ckpt_path, metrics_out)` scores a
-checkpoint (recall on `dataset=dynamic`, L1/L2/PSNR/SSIM on `dataset=emptycities`).
+`train(cfg, run_dir)` runs phase 1 -> phase 2 -> VPR evaluation; `evaluate(cfg, state)` scores the
+checkpoint cfg.ckpt (recall on `dataset=dynamic`, L1/L2/PSNR/SSIM on `dataset=emptycities`).
 """
 
 from geoloc.tasks.mmdip.pipeline import evaluate, train

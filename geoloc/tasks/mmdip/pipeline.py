@@ -161,10 +161,11 @@ def _merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictCon
     return OmegaConf.create(section)
 
 
-def load_task(ckpt_path: Path) -> tuple[JointTask | SegmentationTask, MMDIPConfig, DictConfig]:
+def load_task(ckpt_path: Path, state: dict | None = None) -> tuple[JointTask | SegmentationTask, MMDIPConfig,
+                                                                   DictConfig]:
     """(task with the checkpoint's weights, its task config, its stored config): a JointTask for a phase-2
-    checkpoint, a SegmentationTask for a phase-1 one."""
-    state = ckpt_io.load(ckpt_path)
+    checkpoint, a SegmentationTask for a phase-1 one. `state`: the checkpoint, when already loaded."""
+    state = state if state is not None else ckpt_io.load(ckpt_path)
     stored = OmegaConf.create(state["config"])
     task_cfg = checked(stored.task, MMDIPConfig, "task")
     uniform = [1.0 / task_cfg.num_classes] * task_cfg.num_classes  # the stored class weights replace these
@@ -177,15 +178,17 @@ def load_task(ckpt_path: Path) -> tuple[JointTask | SegmentationTask, MMDIPConfi
 
 
 @torch.no_grad()
-def evaluate(cfg: DictConfig, ckpt_path, metrics_out=None) -> dict:
+def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
     """Score a phase-2 (or phase-1) checkpoint on the dataset asked for (default: the run's own).
 
     Phase 2, every reader (dynamic, carla4, emptycities): the place protocol of protocol.py, so the recall keys
     + num_queries, the BoW / SPM / dynamic-BoW rows, and L1 / L2 / PSNR / SSIM of the recovered queries against
     their static views; artefacts are reused from the run's vpr/ folder (vpr_dir). Phase 1: PA, MPA, MIoU, FWIoU
-    (needs labels). Writes the JSON to `metrics_out` when given."""
-    ckpt_path = Path(ckpt_path)
-    task, task_cfg, stored = load_task(ckpt_path)
+    (needs labels). `cfg.ckpt` is the checkpoint (`state` its loaded contents, when the caller has them); writes
+    the JSON to `cfg.metrics_out` when given."""
+    ckpt_path = Path(cfg.ckpt)
+    metrics_out = cfg.get("metrics_out")
+    task, task_cfg, stored = load_task(ckpt_path, state)
     data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
     is_joint = isinstance(task, JointTask)
     if not is_joint and data_cfg.name == "emptycities":

@@ -35,9 +35,3 @@ def checked(section: DictConfig | dict | None, schema: type[T], where: str) -> T
 
 def to_yaml(cfg: Any) -> str:
     return OmegaConf.to_yaml(cfg, resolve=True)
-
-
-def require_name(group: str, name: str, known: tuple[str, ...]) -> None:
-    """A group's `name` key must name what the code builds: a silently ignored name would train something else."""
-    if name not in known:
-        raise ValueError(f"{group}.name={name!r} is not one this task builds; choose one of {list(known)}")

@@ -141,3 +141,31 @@ def test_a_checkpoint_of_the_old_layout_still_evaluates(finished_run, tmp_path):
     torch.save(old_state, tmp_path / "old.pt")
     again = evaluate(tmp_path, f"ckpt={tmp_path / 'old.pt'}", f"dataset.root={root}")
     assert again == new
+
+
+@pytest.mark.parametrize("name,layout", [("synthetic", "cvusa"), ("vigor", "vigor"), ("u1652", "u1652"),
+                                         ("dynamic", "dynamic")])
+def test_embedded_datasets_render_into_the_cache_when_root_is_null(name, layout, tmp_path, monkeypatch):
+    """root=null reaches the synthetic renderer for every embedded dataset (the readers and task=mmdip's)."""
+    import geoloc.data.synthetic as synthetic
+
+    asked = []
+
+    def fake_ensure(kind, root, **kwargs):
+        asked.append((kind, root))
+        raise RuntimeError("stop here")
+
+    monkeypatch.setenv("GEOLOC_CACHE", str(tmp_path))
+    monkeypatch.setattr(synthetic, "ensure_dataset", fake_ensure)
+    with pytest.raises(RuntimeError, match="stop here"):
+        if name == "dynamic":
+            from geoloc.config import checked
+            from geoloc.tasks.mmdip.config import DynamicDataConfig
+            from geoloc.tasks.mmdip.pipeline import dataset_root
+
+            dataset_root(checked(compose_train(["task=mmdip"]).dataset, DynamicDataConfig, "dataset"))
+        else:
+            from geoloc.data.crossview import read_split
+
+            read_split(compose_train([f"dataset={name}"]).dataset, "train")
+    assert asked[0][0] == layout and str(asked[0][1]).startswith(str(tmp_path / "synthetic"))

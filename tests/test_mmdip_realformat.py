@@ -6,7 +6,6 @@ import dataclasses
 import importlib.util
 import json
 
-import numpy as np
 import pytest
 import torch
 from conftest import REPO, compose_evaluate, compose_train

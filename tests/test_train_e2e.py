@@ -10,7 +10,6 @@ from omegaconf import OmegaConf
 from conftest import REALDATA, TINY, compose_evaluate, compose_train
 
 from geoloc import run
-from geoloc.config import checked
 from geoloc.data import crossview as data
 from geoloc.engine import NonFiniteLossError
 from geoloc.engine import checkpoint as ckpt_io

@@ -9,7 +9,6 @@ head=gap loss=infonce optim=adamw with a hard-sample sampler (conf/experiment/sa
 
 from __future__ import annotations
 
-import torch
 from omegaconf import DictConfig
 
 from geoloc import registry

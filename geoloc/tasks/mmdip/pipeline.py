@@ -12,7 +12,6 @@ import dataclasses
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -36,7 +35,7 @@ def dataset_root(cfg: DynamicDataConfig) -> Path:
     """The dataset folder; the synthetic `dynamic` layout is generated on first use when root is null."""
     if cfg.root:
         return Path(cfg.root).expanduser()
-    from geoloc.data.crossview import default_cache
+    from geoloc.data.readers import default_cache
     from geoloc.data.synthetic import ensure_dataset
 
     root = default_cache() / (f"dynamic-{cfg.preset}-{cfg.view_size or 'preset'}px-{cfg.train_size}-{cfg.val_size}"

@@ -35,7 +35,10 @@ KINDS = {
     "loss": "loss",
     "sampler": "sampler",
     "optimizer": "optim",
+    "segmenter": "task.segmentation",  # task=mmdip's phase-1 network, named by task.segmentation.model
 }
+# the key that names a component, where it is not <section>.name
+NAME_KEYS = {"segmenter": "task.segmentation.model"}
 # the modules that register geoloc's own components (imported on first lookup)
 BUILTIN_MODULES = (
     "geoloc.data.readers",
@@ -45,6 +48,7 @@ BUILTIN_MODULES = (
     "geoloc.losses.infonce",
     "geoloc.data.samplers",
     "geoloc.optim",
+    "geoloc.tasks.mmdip.networks",
 )
 RESERVED = ("name", "module")
 
@@ -75,8 +79,9 @@ def names(kind: str) -> list[str]:
 def lookup(kind: str, name: str) -> Callable:
     _load_builtins()
     if name not in _registry[kind]:
-        raise ConfigError(f"{KINDS[kind]}.name={name!r} is not a known {kind}; choose one of {names(kind)}, or add "
-                          f"one from your own module (docs/extending.md)")
+        key = NAME_KEYS.get(kind, f"{KINDS[kind]}.name")
+        raise ConfigError(f"{key}={name!r} is not a known {kind}; choose one of {names(kind)}, or add one from your "
+                          f"own module (docs/extending.md)")
     return _registry[kind][name]
 
 

@@ -115,3 +115,22 @@ def test_train_and_evaluate_with_all_plugins_from_the_command_line(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     metrics = json.loads(out.read_text())
     assert metrics["num_queries"] == 6 and 0.0 <= metrics["R@1"] <= 1.0
+
+
+def test_mmdip_takes_a_segmenter_from_outside_the_package(tmp_path):
+    """task=mmdip's phase-1 network comes from the same registry (task.segmentation.model + .module)."""
+    from geoloc.config import checked
+    from geoloc.tasks.mmdip.config import MMDIPConfig
+    from geoloc.tasks.mmdip.pipeline import parse
+    from geoloc.tasks.mmdip.segmentation import SegmentationTask
+
+    cfg = compose_train(["task=mmdip", "task.segmentation.model=tiny_segmenter",
+                         "task.segmentation.module=plugins.tiny_segmenter", f"run_dir={tmp_path}"])
+    task_cfg = parse(cfg)[0]
+    task = SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, [1 / 8] * 8)
+    assert isinstance(task.seg, torch.nn.Conv2d) and task.seg(torch.zeros(1, 3, 16, 16)).shape == (1, 8, 16, 16)
+    cfg = compose_train(["task=mmdip", "task.segmentation.model=segformer", f"run_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match=r"task.segmentation.model='segformer' is not a known segmenter; choose one "
+                                          r"of \[.*'erfnet', 'fcn'"):
+        parse(cfg)
+    assert checked(cfg.task, MMDIPConfig, "task").segmentation.model == "segformer"  # the name is checked at parse

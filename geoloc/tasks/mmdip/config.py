@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-SEGMENTERS = ("erfnet", "fcn", "unet")
 VARIANTS = ("ssggnet", "ssggnet_sm", "pix2pix", "mgan")
 DATASETS = ("dynamic", "emptycities", "carla4")
 # Generator loss weights (adversarial, L1, perceptual) by name: task.translation.loss_weights
@@ -22,7 +21,8 @@ GENERATOR_LOSS_WEIGHTS = {
 class SegmentationConfig:
     """Phase 1: the static-segmentation network alone (paper: ERFNet, Adam lr 2e-3, batch 1)."""
 
-    model: str = "erfnet"  # erfnet | fcn | unet (the Table I baselines)
+    model: str = "erfnet"  # a registered segmenter: erfnet | fcn | unet (the Table I baselines) | a plug-in's
+    module: str | None = None  # a plug-in segmenter's module (docs/extending.md)
     epochs: int = 20
     batch_size: int = 1
     lr: float = 2e-3
@@ -32,8 +32,6 @@ class SegmentationConfig:
     fcn_width: int = 32
 
     def __post_init__(self):
-        if self.model not in SEGMENTERS:
-            raise ValueError(f"task.segmentation.model must be one of {SEGMENTERS}, got {self.model!r}")
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
             raise ValueError("task.segmentation.epochs and batch_size must be >= 1 and lr > 0")
 

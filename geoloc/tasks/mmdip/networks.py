@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from geoloc import registry
 from geoloc.models.erfnet import ERFNet
 from geoloc.models.fcn import FCN8s
 from geoloc.models.patchgan import PatchGAN
@@ -20,12 +21,33 @@ from geoloc.models.unet import UNet
 from geoloc.tasks.mmdip.config import SegmentationConfig, TranslationConfig
 
 
+@registry.register("segmenter", "erfnet")
+def erfnet(num_classes: int) -> ERFNet:
+    return ERFNet(num_classes)
+
+
+@registry.register("segmenter", "fcn")
+def fcn(num_classes: int, fcn_width: int = 32) -> FCN8s:
+    return FCN8s(num_classes, width=fcn_width)
+
+
+@registry.register("segmenter", "unet")
+def unet(num_classes: int, unet_num_downs: int = 5, unet_ngf: int = 32) -> UNet:
+    return UNet(3, num_classes, num_downs=unet_num_downs, ngf=unet_ngf, final=None, dropout=False)
+
+
+def segmenter_factory(cfg: SegmentationConfig):
+    """The registered segmenter task.segmentation.model names (after importing task.segmentation.module)."""
+    registry.import_module(cfg.module, "task.segmentation")
+    return registry.lookup("segmenter", cfg.model)
+
+
 def build_segmenter(cfg: SegmentationConfig, num_classes: int) -> nn.Module:
-    if cfg.model == "erfnet":
-        return ERFNet(num_classes)
-    if cfg.model == "fcn":
-        return FCN8s(num_classes, width=cfg.fcn_width)
-    return UNet(3, num_classes, num_downs=cfg.unet_num_downs, ngf=cfg.unet_ngf, final=None, dropout=False)
+    """A segmenter maps B×3×H×W images to B×num_classes×H×W logits; it takes num_classes and, if it names them,
+    the baselines' size keys of task.segmentation (fcn_width, unet_num_downs, unet_ngf)."""
+    factory = segmenter_factory(cfg)
+    sizes = {"fcn_width": cfg.fcn_width, "unet_num_downs": cfg.unet_num_downs, "unet_ngf": cfg.unet_ngf}
+    return factory(**registry.accepted(factory, {"num_classes": num_classes, **sizes}))
 
 
 def generator_channels(variant: str, num_classes: int) -> int:

@@ -23,6 +23,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.tasks.mmdip.config import DATASETS, DynamicDataConfig, MMDIPConfig
 from geoloc.tasks.mmdip.joint import JointTask
+from geoloc.tasks.mmdip.networks import segmenter_factory
 from geoloc.tasks.mmdip.protocol import place_protocol
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
@@ -69,6 +70,7 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
     if data_cfg.name == "emptycities":
         raise ConfigError("dataset=emptycities has no labels: it is for evaluation only (evaluate.py ckpt=...)")
+    segmenter_factory(task_cfg.segmentation)  # an unknown task.segmentation.model fails here, before any data
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
     if cfg.get("ckpt") or cfg.get("init_from"):

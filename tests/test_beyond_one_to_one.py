@@ -169,3 +169,30 @@ def test_embedded_datasets_render_into_the_cache_when_root_is_null(name, layout,
 
             read_split(compose_train([f"dataset={name}"]).dataset, "train")
     assert asked[0][0] == layout and str(asked[0][1]).startswith(str(tmp_path / "synthetic"))
+
+
+def test_figures_frame_retrievals_by_label():
+    """top5.png's frames: the positive green, a semi-positive orange (VIGOR), any reference of the query's building
+    green with labels (University-1652), the rest red; one-to-one: reference i for query i."""
+    import numpy as np
+
+    from geoloc.data.retrieval_split import RetrievalSplit
+    from geoloc.eval.figures import GREEN, ORANGE, RED, relevance_colour
+
+    vigor = RetrievalSplit("v", "/r", ["q0", "q1"], ["r0", "r1", "r2"], positives=np.array([2, 0]),
+                           semi_positives=np.array([[1, -1], [-1, -1]]))
+    assert [relevance_colour(vigor, 0, j) for j in range(3)] == [RED, ORANGE, GREEN]
+    assert [relevance_colour(vigor, 1, j) for j in range(3)] == [GREEN, RED, RED]
+    u1652 = RetrievalSplit("u", "/r", ["q0"], ["r0", "r1", "r2"], positives=np.array([1]),
+                           query_labels=np.array([7]), reference_labels=np.array([3, 7, 7]))
+    assert [relevance_colour(u1652, 0, j) for j in range(3)] == [RED, GREEN, GREEN]
+    assert relevance_colour(None, 4, 4) == GREEN and relevance_colour(None, 4, 5) == RED
+
+
+@pytest.mark.slow
+def test_figures_are_written_for_a_label_based_split(u1652_root, tmp_path):
+    cfg = compose_train([*SMALL, "dataset=u1652", f"dataset.root={u1652_root}", "trainer.max_epochs=1",
+                         "figures=true", f"run_dir={tmp_path / 'run'}"])
+    run.train(cfg)
+    for name in ("attention.png", "top5.png", "recall_curve.png"):
+        assert (tmp_path / "run" / name).stat().st_size > 1000, name

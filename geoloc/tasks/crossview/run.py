@@ -55,12 +55,12 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     if dist.is_main():
         print_table(best, f"best validation (epoch {best.get('epoch')}), {len(val_set)} queries, {val_set.split.name}")
         print(f"checkpoints: {run_dir / 'best.pt'}  {run_dir / 'last.pt'}")
-        if cfg.get("figures", True) and (run_dir / "best.pt").is_file() and val_set.pairs is not None:
+        if cfg.get("figures", True) and (run_dir / "best.pt").is_file():
             from geoloc.eval.figures import crossview_figures
 
             state = ckpt_io.load(run_dir / "best.pt")
             ckpt_io.load_task_state(task, state, run_dir / "best.pt")
-            crossview_figures(task, val_set.pairs, run_dir, trainer.device,
+            crossview_figures(task, val_set, run_dir, trainer.device,
                               data_cfg.val_batch_size or data_cfg.batch_size)
     return best
 

@@ -10,15 +10,16 @@ from geoloc.engine import distributed as dist
 
 
 @torch.no_grad()
-def encode(task, engine, dataset, batch_size: int, keys=("query", "reference")) -> dict:
+def encode(task, engine, dataset, batch_size: int, keys=("query", "reference"), loader=None) -> dict:
     """{key: N x dim float32 CPU descriptors} of the whole dataset in dataset order.
 
-    keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
+    keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference");
+    `loader`: a DataLoader over `dataset` to reuse (its workers stay up between calls).
     """
     was_training = task.training
     task.eval()
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*keys, "index")}
-    for batch in engine.loader(dataset, batch_size, train=False):
+    for batch in loader if loader is not None else engine.loader(dataset, batch_size, train=False):
         batch = engine.to_device(batch)
         with engine.autocast():
             for key in keys:
@@ -30,8 +31,9 @@ def encode(task, engine, dataset, batch_size: int, keys=("query", "reference")) 
     return {k: v[order].cpu() for k, v in out.items()}
 
 
-def encode_pairs(task, engine, pairs, batch_size: int) -> dict:
-    """The training pairs' descriptors without augmentation (for a similarity sampler)."""
+def plain_pairs_loader(engine, pairs, batch_size: int):
+    """A loader over the training pairs without augmentation, for a similarity sampler's descriptors each epoch
+    (built once: with persistent workers, a new loader per epoch would start its workers again)."""
     plain = copy.copy(pairs)
     plain.train = False
-    return encode(task, engine, plain, batch_size)
+    return engine.loader(plain, batch_size, train=False)

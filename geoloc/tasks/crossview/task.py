@@ -54,16 +54,19 @@ class CrossViewTask(Task):
         self.sampler = registry.build("sampler", self.sampler_section, labels=dataset.labels, batch_size=batch_size,
                                       seed=engine.seed, rank=dist.rank(), world_size=dist.world_size(),
                                       neighbours=getattr(dataset, "neighbours", None))
-        self._train_set, self._encode_batch = dataset, batch_size
+        if getattr(self.sampler, "needs_descriptors", False):
+            from geoloc.tasks.crossview.encode import plain_pairs_loader
+
+            self._descriptor_loader = plain_pairs_loader(engine, dataset, batch_size)
         return engine.loader(dataset, batch_size, train=True, batch_sampler=self.sampler)
 
     def on_train_epoch_start(self, engine):
         if hasattr(self.loss, "on_train_epoch_start"):
             self.loss.on_train_epoch_start(engine.epoch)
         if getattr(self.sampler, "needs_descriptors", False) and engine.epoch > 0:
-            from geoloc.tasks.crossview.encode import encode_pairs
+            from geoloc.tasks.crossview.encode import encode
 
-            desc = encode_pairs(self, engine, self._train_set, self._encode_batch)
+            desc = encode(self, engine, None, 0, loader=self._descriptor_loader)
             self.sampler.set_descriptors(desc["query"], desc["reference"])
 
     def training_step(self, batch, engine):

@@ -87,6 +87,19 @@ def lookup(kind: str, name: str) -> Callable:
 
 def build(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (), **runtime: Any) -> Any:
     """Build the `kind` named by `section.name` with the section's other keys (minus `exclude`) plus `runtime`."""
+    factory, params, runtime = _resolve(kind, section, exclude, runtime)
+    return factory(**params, **runtime)
+
+
+def check(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (),
+          runtime: tuple[str, ...] = ()) -> None:
+    """build()'s checks without building: for what is built later (an optimizer needs the network first)."""
+    _resolve(kind, section, exclude, dict.fromkeys(runtime))
+
+
+def _resolve(kind: str, section, exclude: tuple[str, ...], runtime: dict) -> tuple[Callable, dict, dict]:
+    """(factory, its config keys, the runtime arguments it takes), checked: the plug-in module imported, the name
+    known, every key an argument and every argument without a default given."""
     params = _as_dict(section)
     where = KINDS[kind]
     if "name" not in params:
@@ -96,17 +109,7 @@ def build(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (
     params = {k: v for k, v in params.items() if k not in RESERVED and k not in exclude}
     runtime = accepted(factory, runtime)
     check_arguments(factory, params, runtime, _qualname(factory), where)
-    return factory(**params, **runtime)
-
-
-def check(kind: str, section: DictConfig | dict, *, runtime: tuple[str, ...] = ()) -> None:
-    """build()'s checks without building: for what is built later (an optimizer needs the network first)."""
-    params = _as_dict(section)
-    where = KINDS[kind]
-    import_module(params.get("module"), where)
-    factory = lookup(kind, params.get("name"))
-    params = {k: v for k, v in params.items() if k not in RESERVED}
-    check_arguments(factory, params, accepted(factory, dict.fromkeys(runtime)), _qualname(factory), where)
+    return factory, params, runtime
 
 
 def accepted(factory: Callable, runtime: dict) -> dict:

@@ -80,8 +80,7 @@ def shared_config(section) -> CrossViewDataConfig:
 
 def check_reader_keys(section) -> None:
     """The reader's own keys against its signature, without reading anything (start-up checks)."""
-    params = {k: v for k, v in as_dict(section).items() if k not in SHARED_KEYS or k in ("name", "module")}
-    registry.check("dataset", params, runtime=("root", "split"))
+    registry.check("dataset", as_dict(section), exclude=SHARED_KEYS, runtime=("root", "split"))
 
 
 def read_split(section, split: str) -> RetrievalSplit:

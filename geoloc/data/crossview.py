@@ -136,7 +136,7 @@ class CrossViewPairs(Dataset):
     per (seed, epoch, index)."""
 
     def __init__(self, split: RetrievalSplit, cfg: CrossViewDataConfig, train: bool, augment_seed: int = 0):
-        if split.query_view == "aerial":
+        if split.aerial_queries:
             raise ValueError(f"{split.name}: pairs need ground-side queries; this split's queries are aerial images")
         self.split, self.cfg, self.train = split, cfg, train
         self.augment_seed = augment_seed
@@ -176,11 +176,6 @@ class ViewImages(Dataset):
 
     def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig):
         self.paths, self.view, self.cfg = list(paths), view, cfg
-
-    @property
-    def branch(self) -> str:
-        """The network branch that encodes these images."""
-        return "reference" if self.view == "aerial" else "query"
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -290,6 +285,6 @@ def build_eval(section, split: str) -> EvalData:
     data = read_split(section, split)
     if data.one_to_one:
         return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False))
-    reference_view = "image" if data.query_view == "aerial" else "aerial"
+    reference_view = "image" if data.aerial_queries else "aerial"
     return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg),
                     references=ViewImages(data.references, reference_view, cfg))

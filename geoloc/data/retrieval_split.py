@@ -85,6 +85,10 @@ class RetrievalSplit:
         return self.positives
 
     @property
+    def aerial_queries(self) -> bool:
+        return self.query_view == "aerial"
+
+    @property
     def num_queries(self) -> int:
         return len(self.queries)
 

@@ -98,9 +98,7 @@ def crossview_figures(task, data, run_dir: str | Path, device: torch.device, bat
     run_dir = Path(run_dir)
     task.eval().to(device)
     query_image, reference_image, n_query, n_reference, split = _sides(data)
-    swap = split is not None and split.query_view == "aerial"  # queries are aerial: the reference branch encodes
-    query_branch = task.model.reference if swap else task.model.query
-    reference_branch = task.model.query if swap else task.model.reference
+    query_branch, reference_branch = task.model.encoders(split is not None and split.aerial_queries)
 
     def encode(branch, image, n):
         out = []

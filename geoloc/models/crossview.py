@@ -48,3 +48,8 @@ class CrossViewModel(nn.Module):
 
     def forward(self, query: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.query(query), self.reference(reference)
+
+    def encoders(self, aerial_queries: bool = False) -> tuple[Branch, Branch]:
+        """(the encoder of a split's queries, of its references). Each image goes through its own view's branch,
+        so aerial queries (University-1652's satellite -> drone) are encoded by the reference branch."""
+        return (self.reference, self.query) if aerial_queries else (self.query, self.reference)

@@ -96,13 +96,9 @@ class CrossViewTask(Task):
         if loader is None:
             query, reference = self.model(batch["query"], batch["reference"])
             return {"query": query, "reference": reference, "index": batch["index"]}
-        dataset_branch = getattr(self.model, self._branch(loader))
-        return {"descriptor": dataset_branch(batch["image"]), "index": batch["index"]}
-
-    def _branch(self, loader: str) -> str:
-        """The branch that encodes a loader's images: queries of an "aerial" split go through the reference one."""
-        swap = self.split is not None and self.split.query_view == "aerial"
-        return {"query": "reference", "reference": "query"}[loader] if swap else loader
+        query_encoder, reference_encoder = self.model.encoders(self.split is not None and self.split.aerial_queries)
+        encoder = query_encoder if loader == "query" else reference_encoder
+        return {"descriptor": encoder(batch["image"]), "index": batch["index"]}
 
     def validation_epoch_end(self, outputs):
         if "query" in outputs and isinstance(outputs["query"], dict):  # two loaders

@@ -113,11 +113,11 @@ def test_all_zero_rows_raise():
 def gallery_eval(monkeypatch, tmp_path, query, reference, **cfg):
     """crossview_gallery.evaluate with encode() replaced by the given descriptors (no network needed)."""
     monkeypatch.setattr(crossview_gallery, "encode",
-                        lambda task, engine, dataset, batch_size, keys=("query", "reference"):
+                        lambda task, engine, loader, keys=("query", "reference"):
                         {k: {"query": query, "reference": reference}[k] for k in keys})
     task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
-    trainer = SimpleNamespace(device=torch.device("cpu"))
-    return crossview_gallery.evaluate(task, trainer, list(range(len(query))), 4, GalleryConfig(**cfg), {})
+    engine = SimpleNamespace(device=torch.device("cpu"), loader=lambda dataset, batch_size, train: None)
+    return crossview_gallery.evaluate(task, engine, list(range(len(query))), 4, GalleryConfig(**cfg), {})
 
 
 def test_gallery_path_refuses_nan_before_saving_and_at_load(monkeypatch, tmp_path):

@@ -10,16 +10,16 @@ from geoloc.engine import distributed as dist
 
 
 @torch.no_grad()
-def encode(task, engine, dataset, batch_size: int, keys=("query", "reference"), loader=None) -> dict:
-    """{key: N x dim float32 CPU descriptors} of the whole dataset in dataset order.
+def encode(task, engine, loader, keys=("query", "reference")) -> dict:
+    """{key: N x dim float32 CPU descriptors} of the whole dataset of `loader` (an unshuffled engine.loader) in
+    dataset order.
 
-    keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference");
-    `loader`: a DataLoader over `dataset` to reuse (its workers stay up between calls).
+    keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
     """
     was_training = task.training
     task.eval()
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*keys, "index")}
-    for batch in loader if loader is not None else engine.loader(dataset, batch_size, train=False):
+    for batch in loader:
         batch = engine.to_device(batch)
         with engine.autocast():
             for key in keys:

@@ -90,10 +90,10 @@ def evaluate(task, engine, dataset, batch_size: int, cfg: GalleryConfig, meta: d
                               f"gallery.save={folder}")
         spread = saved["reference_spread"]
         index = GalleryIndex.load(folder / "gallery.pt", device=engine.device)
-        query = encode(task, engine, dataset, batch_size, keys=("query",))["query"]
+        query = encode(task, engine, engine.loader(dataset, batch_size, train=False), keys=("query",))["query"]
         check_descriptors(query)
         return {**guarded_recall(lambda: recall_from_index(index, query), spread), "num_references": len(index)}
-    desc = encode(task, engine, dataset, batch_size)
+    desc = encode(task, engine, engine.loader(dataset, batch_size, train=False))
     query, reference = desc["query"], desc["reference"]
     spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
 

@@ -66,7 +66,7 @@ class CrossViewTask(Task):
         if getattr(self.sampler, "needs_descriptors", False) and engine.epoch > 0:
             from geoloc.tasks.crossview.encode import encode
 
-            desc = encode(self, engine, None, 0, loader=self._descriptor_loader)
+            desc = encode(self, engine, self._descriptor_loader)
             self.sampler.set_descriptors(desc["query"], desc["reference"])
 
     def training_step(self, batch, engine):

@@ -15,7 +15,7 @@ from urllib.parse import urlparse
 
 import torch
 
-from geoloc.models.vgg import MissingWeightsError
+from geoloc.models.vgg import MissingWeightsError, weights_file
 
 # what timm.models.load_state_dict_from_hf reads from a timm/<model> hub repo, in its order of preference
 HF_FILENAMES = ("model.safetensors", "pytorch_model.bin")
@@ -36,11 +36,8 @@ def hf_hub_cache() -> Path:
 def find_weights(model: str, weights_path: str | None, pretrained_cfg) -> Path:
     """The local file of `model`'s ImageNet weights; MissingWeightsError saying where it looked when none is."""
     if weights_path:
-        path = Path(weights_path).expanduser()
-        if not path.is_file():
-            raise MissingWeightsError(f"backbone.weights_path={weights_path!r} does not exist. Point it at the "
-                                      f"state dict of the full timm model {model!r} (.safetensors, .pth or .bin).")
-        return path
+        return weights_file(weights_path, f"the state dict of the full timm model {model!r} (.safetensors, .pth or "
+                                          ".bin)")
     from huggingface_hub import try_to_load_from_cache  # reads the cache folder only, never the network
 
     hub_id = getattr(pretrained_cfg, "hf_hub_id", None)

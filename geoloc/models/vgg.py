@@ -18,17 +18,21 @@ class MissingWeightsError(FileNotFoundError):
     pass
 
 
+def weights_file(weights_path: str, contents: str) -> Path:
+    """`backbone.weights_path` as an existing file; MissingWeightsError saying what it should hold otherwise."""
+    path = Path(weights_path).expanduser()
+    if not path.is_file():
+        raise MissingWeightsError(f"backbone.weights_path={weights_path!r} does not exist. Point it at {contents}.")
+    return path
+
+
 def imagenet_weights_path(weights_path: str | None = None, filename: str = IMAGENET_FILE) -> Path:
     """Where VGG16 ImageNet weights are read from: an explicit file, else torchvision's hub cache.
 
     Nothing is downloaded: these machines are often offline, and a silent download would change results.
     """
     if weights_path:
-        path = Path(weights_path).expanduser()
-        if not path.is_file():
-            raise MissingWeightsError(f"backbone.weights_path={weights_path!r} does not exist. Point it at a VGG16 "
-                                      f"ImageNet state dict such as torchvision's {filename}.")
-        return path
+        return weights_file(weights_path, f"a VGG16 ImageNet state dict such as torchvision's {filename}")
     path = Path(torch.hub.get_dir()) / "checkpoints" / filename
     if not path.is_file():
         raise MissingWeightsError(

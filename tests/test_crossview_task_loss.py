@@ -9,7 +9,7 @@ from test_triplet import brute_force
 
 import conftest
 
-from geoloc.losses.gms_triplet_loss import gms_triplet
+from geoloc.losses.gms_triplet_loss import GMSTripletLoss
 
 # Batch-norm trunk in train mode: at initialisation a plain tiny VGG maps every image to nearly one descriptor,
 # where every term is log 2 whatever the formula; batch statistics spread the descriptors out.
@@ -51,7 +51,7 @@ def test_alpha_reaches_the_loss():
     loss = step(task, data, 0)["loss"]
     torch.testing.assert_close(loss, brute_force(query, reference, alpha=1.0))
     assert abs(loss - brute_force(query, reference, alpha=10.0)) > 1e-2  # alpha matters on this batch
-    assert gms_triplet(dim=8).alpha == 10.0  # CVM-Net / SAFA / the paper
+    assert GMSTripletLoss(dim=8).alpha == 10.0  # CVM-Net / SAFA / the paper
 
 
 def test_queue_is_filled_after_the_loss_and_masks_the_querys_location():

@@ -16,6 +16,7 @@ from geoloc.losses.triplet import soft_margin_triplet
 from geoloc.registry import register
 
 
+@register("loss", "gms_triplet")
 class GMSTripletLoss(nn.Module):
     """loss(query, reference, labels) on the batch gathered over ranks (B×D each, labels (B,)) -> {"loss", ...}.
 
@@ -59,8 +60,3 @@ class GMSTripletLoss(nn.Module):
         if self._push is not None:
             self.queue.push(*self._push)
             self._push = None
-
-
-@register("loss", "gms_triplet")
-def gms_triplet(dim: int, alpha: float = 10.0, queue_size: int = 1024, queue_start_epoch: int = 0) -> GMSTripletLoss:
-    return GMSTripletLoss(dim, alpha, queue_size, queue_start_epoch)

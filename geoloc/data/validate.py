@@ -78,8 +78,8 @@ def completeness_problem(head: bytes, tail: bytes, size: int) -> str | None:
     return None
 
 
-def _content_problem(data: bytes) -> str | None:
-    """The full-file checks: completeness, then a JPEG's first end marker is its last."""
+def content_problem(data: bytes) -> str | None:
+    """The full-file checks on bytes in memory: completeness, then a JPEG's first end marker is its last."""
     problem = completeness_problem(data[:8], data[-_TAIL_BYTES:], len(data))
     if problem or not data.startswith(JPEG_SOI):
         return problem
@@ -110,7 +110,7 @@ def image_problem(path: Path) -> str | None:
         return "missing"
     except OSError as err:
         return f"unreadable ({err.strerror or err})"
-    problem = _content_problem(data)
+    problem = content_problem(data)
     if problem:
         return problem
     img = _decode(data)

@@ -16,6 +16,7 @@ import types
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 
+import anyio
 import cv2
 import httpx
 import numpy as np
@@ -199,6 +200,21 @@ def test_a_body_over_the_byte_limit_gets_413_declared_or_streamed(fake):
     assert streamed.status_code == 413 and "(max_bytes)" in streamed.text
     assert fake.calls == 0
     assert_still_serving(client, fake)
+
+
+def test_a_declared_content_length_over_the_limit_is_refused_unread(fake):
+    app, sent = create_app(fake, max_bytes=5_000), []
+
+    async def receive():
+        raise AssertionError("the body was read")
+
+    async def send(message):
+        sent.append(message)
+
+    scope = {"type": "http", "method": "POST", "path": "/localize", "headers": [(b"content-length", b"10000000000")],
+             "query_string": b"", "root_path": "", "scheme": "http", "server": ("test", 80), "http_version": "1.1"}
+    anyio.run(app, scope, receive, send)
+    assert sent[0]["status"] == 413 and b"limit of 5,000 bytes" in sent[1]["body"]
 
 
 @pytest.mark.parametrize("name,message", [

@@ -25,7 +25,6 @@ from geoloc.engine import checkpoint
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview.places import read_places
 
-SEARCH_DEPTH = 32  # gallery rows fetched per candidate heading before merging (>= topk)
 
 
 class Localizer:
@@ -100,10 +99,12 @@ class Localizer:
         else:
             inputs, headings = self._at_heading(street, fov, float(heading)), np.array([float(heading) % 360.0])
         descriptors = self.encoder(inputs.to(self.device)).float()
-        scores, rows = self.index.search(descriptors, min(len(self.index), max(SEARCH_DEPTH, int(topk))))
+        # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
+        scores, rows = self.index.search(descriptors, min(len(self.index), int(topk)))
         best = self._merge(scores.numpy(), rows.numpy(), headings)[: int(topk)]
         answer = {"image": name or (str(path) if path else None), "fov_deg": fov,
-                  "heading_deg": best[0]["heading_deg"], "position": self._position(best[0]["row"]),
+                  "heading_deg": best[0]["heading_deg"], "heading_source": "search" if heading is None else "given",
+                  "position": self._position(best[0]["row"]),
                   "topk": best, "positions": self.places.kind}
         truth = self._truth(path, best)
         if truth is not None:

@@ -57,6 +57,24 @@ def test_vigor_trains_and_evaluates_in_both_settings(vigor_root, tmp_path):
     assert (same["num_queries"], same["num_references"]) == (6, 18)
     assert (cross["num_queries"], cross["num_references"]) == (7, 9)
 
+    # a saved gallery of this non-1:1 split scores as the exact evaluation, and localize answers from it
+    ckpt, folder = tmp_path / "run" / "best.pt", tmp_path / "gallery"
+    args = (f"ckpt={ckpt}", "dataset=vigor", f"dataset.root={vigor_root}", "dataset.cities=[Chicago,NewYork]")
+    saved = evaluate(tmp_path, *args, f"gallery.save={folder}")
+    loaded = evaluate(tmp_path, *args, f"gallery.load={folder}")
+    for key in ("R@1", "R@5", "R@1%", "hit_rate", "median_m", "within_50m"):
+        assert saved[key] == pytest.approx(same[key]) and loaded[key] == pytest.approx(same[key]), key
+    from geoloc.data.geo import haversine_m
+    from geoloc.localize import Localizer, read_street
+
+    query = json.loads((folder / "queries.jsonl").read_text().splitlines()[0])
+    answer = Localizer.load(ckpt, folder, device="cpu").localize(
+        read_street(vigor_root / query["path"]), topk=3, heading=0, path=vigor_root / query["path"])
+    top1 = answer["topk"][0]
+    assert answer["truth"]["row"] == query["positive"] and answer["positions"] == "latlon"
+    assert answer["truth"]["error_m"] == pytest.approx(
+        float(haversine_m([query["lat"], query["lon"]], [top1["lat"], top1["lon"]])))
+
 
 @pytest.mark.slow
 def test_u1652_trains_and_scores_both_directions_with_ap(u1652_root, tmp_path):

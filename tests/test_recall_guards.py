@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from geoloc.data.crossview import EvalData
+from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval import GalleryIndex, recall_at_k
 from geoloc.eval.descriptors import UNIT_TOLERANCE, unit_rows
 from geoloc.eval.recall import retrieval_ranks
@@ -111,13 +113,16 @@ def test_all_zero_rows_raise():
 
 # ---- the saved-gallery path of evaluate.py ---------------------------------------------------------------------
 def gallery_eval(monkeypatch, tmp_path, query, reference, **cfg):
-    """crossview_gallery.evaluate with encode() replaced by the given descriptors (no network needed)."""
-    monkeypatch.setattr(crossview_gallery, "encode",
-                        lambda task, engine, loader, keys=("query", "reference"):
-                        {k: {"query": query, "reference": reference}[k] for k in keys})
+    """crossview_gallery.evaluate with encode_split() replaced by the given descriptors (no network needed)."""
+    monkeypatch.setattr(crossview_gallery, "encode_split",
+                        lambda task, engine, data, batch_size, sides=("query", "reference"):
+                        {k: {"query": query, "reference": reference}[k] for k in sides})
     task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
-    engine = SimpleNamespace(device=torch.device("cpu"), loader=lambda dataset, batch_size, train: None)
-    return crossview_gallery.evaluate(task, engine, list(range(len(query))), 4, GalleryConfig(**cfg), {})
+    engine = SimpleNamespace(device=torch.device("cpu"))
+    n = len(query)
+    split = RetrievalSplit("pairs", tmp_path, [f"q{i}.jpg" for i in range(n)], [f"r{i}.jpg" for i in range(n)],
+                           np.arange(n))
+    return crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), {})
 
 
 def test_gallery_path_refuses_nan_before_saving_and_at_load(monkeypatch, tmp_path):

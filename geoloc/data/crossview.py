@@ -107,10 +107,12 @@ def limited(split: RetrievalSplit, n: int) -> RetrievalSplit:
     take = lambda a: None if a is None else a[:n]  # noqa: E731
     if split.one_to_one:
         return replace(split, queries=split.queries[:n], references=split.references[:n],
-                       positives=split.positives[:n])
+                       positives=split.positives[:n], query_latlon=take(split.query_latlon),
+                       reference_latlon=take(split.reference_latlon), query_xy=take(split.query_xy),
+                       reference_xy=take(split.reference_xy))
     return replace(split, queries=split.queries[:n], positives=split.positives[:n],
                    semi_positives=take(split.semi_positives), query_latlon=take(split.query_latlon),
-                   query_labels=take(split.query_labels))
+                   query_xy=take(split.query_xy), query_labels=take(split.query_labels))
 
 
 def paths_to_check(split: RetrievalSplit) -> list[Path]:

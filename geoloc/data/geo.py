@@ -40,3 +40,13 @@ def latlon_to_offset(origin, latlon) -> np.ndarray:
     north = np.radians(latlon[..., 0] - lat0) * EARTH_RADIUS_M
     east = np.radians(latlon[..., 1] - lon0) * EARTH_RADIUS_M * np.cos(np.radians(lat0))
     return np.stack([east, north], -1)
+
+
+def distance_m(a, b, kind: str) -> np.ndarray:
+    """Metres between (..., 2) positions of one kind: "latlon" (degrees; haversine) or "xy" (metres in one
+    projected frame, e.g. UTM; Euclidean)."""
+    if kind == "latlon":
+        return haversine_m(a, b)
+    if kind == "xy":
+        return np.linalg.norm(np.asarray(a, np.float64) - np.asarray(b, np.float64), axis=-1)
+    raise ValueError(f"position kind must be 'latlon' or 'xy', got {kind!r}")

@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.config import ConfigError
+from geoloc.data.positions import read_positions
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.data.splits import cvact_pairs, cvusa_pairs
+from geoloc.data.splits import cvact_index, cvusa_pairs
 from geoloc.data.u1652 import u1652_split
 from geoloc.data.vigor import vigor_split
 from geoloc.registry import register
@@ -24,25 +25,40 @@ def default_cache() -> Path:
     return Path(os.environ.get("GEOLOC_CACHE", Path.home() / ".cache" / "geoloc")) / "synthetic"
 
 
-def pairs_split(name: str, root, pairs: list[tuple[Path, Path]], query_view: str = "panorama") -> RetrievalSplit:
-    """A one-to-one split from (street, aerial) pairs: query i matches reference i."""
+def pairs_split(name: str, root, pairs: list[tuple[Path, Path]], query_view: str = "panorama",
+                positions: tuple[str, np.ndarray] | None = None) -> RetrievalSplit:
+    """A one-to-one split from (street, aerial) pairs: query i matches reference i. positions: (kind, P x 2),
+    kind "xy" (metres) or "latlon" (degrees), where pair i was taken; its query and reference share it."""
+    where = {}
+    if positions is not None:
+        kind, array = positions
+        where = {f"query_{kind}": array, f"reference_{kind}": array}
     return RetrievalSplit(name=name, root=Path(root), queries=[street for street, _ in pairs],
                           references=[aerial for _, aerial in pairs], positives=np.arange(len(pairs)),
-                          query_view=query_view)
+                          query_view=query_view, **where)
+
+
+def cvusa_layout_split(name: str, root, split: str) -> RetrievalSplit:
+    """CVUSA's split files, with the optional positions.csv (geoloc/data/positions.py)."""
+    pairs = cvusa_pairs(root, split)
+    return pairs_split(name, root, pairs, positions=read_positions(Path(root), [street for street, _ in pairs]))
 
 
 @register("dataset", "cvusa")
 def cvusa(root: str, split: str) -> RetrievalSplit:
     """CVUSA's 35,532 / 8,884 subset (splits/{train,val}-19zl.csv); the panoramas are the horizon band."""
     _require_root(root, "cvusa")
-    return pairs_split(f"cvusa/{split}", root, cvusa_pairs(root, split))
+    return cvusa_layout_split(f"cvusa/{split}", root, split)
 
 
 @register("dataset", "cvact")
 def cvact(root: str, split: str) -> RetrievalSplit:
-    """CVACT (ACT_data.mat; val = valSet, test = valSetAll); full-sphere panoramas, cropped to rows H/4..3H/4."""
+    """CVACT (ACT_data.mat; val = valSet, test = valSetAll); full-sphere panoramas, cropped to rows H/4..3H/4.
+    Positions: the file's UTM (metres), when it has them."""
     _require_root(root, "cvact")
-    return pairs_split(f"cvact/{split}", root, cvact_pairs(root, split), query_view="sphere")
+    pairs, utm = cvact_index(root, split)
+    return pairs_split(f"cvact/{split}", root, pairs, query_view="sphere",
+                       positions=None if utm is None else ("xy", utm))
 
 
 @register("dataset", "synthetic")
@@ -54,7 +70,7 @@ def synthetic(root: str | None, split: str, preset: str = "small", train_size: i
     root = Path(root).expanduser() if root else default_cache() / f"cvusa-{preset}-{train_size}-{val_size}-seed{seed}"
     root = Path(ensure_dataset("cvusa", root, preset=preset, train=train_size, val=val_size, seed=seed,
                                workers=workers))
-    return pairs_split(f"synthetic/{split}", root, cvusa_pairs(root, split))
+    return cvusa_layout_split(f"synthetic/{split}", root, split)
 
 
 @register("dataset", "vigor")

@@ -23,6 +23,8 @@ class RetrievalSplit:
     positives (Q,) int: each query's positive reference index;
     semi_positives (Q, S) int or None: further references that hold the query's place, -1 for none;
     query_latlon (Q, 2), reference_latlon (N, 2) float degrees or None (VIGOR: from the file names);
+    query_xy (Q, 2), reference_xy (N, 2) float metres (easting, northing) in one projected frame, or None: CVACT's
+    UTM (`utm` in ACT_data.mat), the synthetic layouts' `positions.csv` (docs/datasets.md);
     query_labels (Q,), reference_labels (N,) int or None: place / building ids, given together; a reference is
     relevant to a query when their labels are equal (University-1652's AP counts all of them);
     query_view: what a query image is, so the data module knows how to align it: "panorama" (CVUSA's horizon band),
@@ -40,6 +42,8 @@ class RetrievalSplit:
     semi_positives: np.ndarray | None = None
     query_latlon: np.ndarray | None = None
     reference_latlon: np.ndarray | None = None
+    query_xy: np.ndarray | None = None
+    reference_xy: np.ndarray | None = None
     query_labels: np.ndarray | None = None
     reference_labels: np.ndarray | None = None
     query_view: str = "panorama"  # panorama | sphere | image | aerial: see above
@@ -62,6 +66,9 @@ class RetrievalSplit:
         for key, rows in (("query_latlon", q), ("reference_latlon", n)):
             if getattr(self, key) is not None:
                 put(key, self._latlon(key, getattr(self, key), rows))
+        for key, rows in (("query_xy", q), ("reference_xy", n)):
+            if getattr(self, key) is not None:
+                put(key, self._xy(key, getattr(self, key), rows))
         if (self.query_labels is None) != (self.reference_labels is None):
             raise ValueError(f"{self._where()}: give query_labels and reference_labels together, or neither")
         if self.query_labels is not None:
@@ -111,6 +118,15 @@ class RetrievalSplit:
             bad = int(np.flatnonzero((a < low) | (a >= high))[0]) // max(1, int(np.prod(shape[1:])))
             raise ValueError(f"{self._where()}: {key} must lie in [{low}, {high}) (the reference indices"
                              f"{', -1 for none' if low == -1 else ''}); query {bad} has {a[bad].tolist()}")
+        return a
+
+    def _xy(self, key: str, value, rows: int) -> np.ndarray:
+        a = np.asarray(value, np.float64)
+        if a.shape != (rows, 2):
+            raise ValueError(f"{self._where()}: {key} has shape {a.shape}, expected ({rows}, 2) of (x, y) metres")
+        if not np.isfinite(a).all():
+            i = int(np.flatnonzero(~np.isfinite(a).all(1))[0])
+            raise ValueError(f"{self._where()}: {key} row {i} = {a[i].tolist()} is not a finite (x, y) in metres")
         return a
 
     def _latlon(self, key: str, value, rows: int) -> np.ndarray:

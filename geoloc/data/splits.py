@@ -57,6 +57,12 @@ def _cvusa_row(row: list[str], where: str) -> tuple[str, str]:
 
 
 def cvact_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
+    return cvact_index(root, split)[0]
+
+
+def cvact_index(root: str | Path, split: str) -> tuple[list[tuple[Path, Path]], np.ndarray | None]:
+    """The split's (street, aerial) pairs and their UTM positions (P x 2 metres, ACT_data.mat's `utm`; None when
+    the file has no `utm`)."""
     from scipy.io import loadmat
 
     root = Path(root)
@@ -80,5 +86,13 @@ def cvact_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
     if index.size and (index.min() < 0 or index.max() >= len(ids)):
         raise ValueError(f"{mat_path}: {struct}.{field} holds indices outside 1..{len(ids)} (1-based expected)")
     base = root / folder
-    return [(base / "streetview" / f"{ids[i]}_grdView.jpg",
-             base / "satview_polish" / f"{ids[i]}_satView_polish.jpg") for i in index]
+    pairs = [(base / "streetview" / f"{ids[i]}_grdView.jpg",
+              base / "satview_polish" / f"{ids[i]}_satView_polish.jpg") for i in index]
+    utm = None
+    if "utm" in mat:
+        utm = np.asarray(mat["utm"], np.float64)
+        if utm.shape != (len(ids), 2):
+            raise ValueError(f"{mat_path}: utm has shape {utm.shape}, expected ({len(ids)}, 2), one (easting, "
+                             "northing) per panoId")
+        utm = utm[index]
+    return pairs, utm

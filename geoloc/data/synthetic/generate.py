@@ -64,6 +64,9 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
         marker["options"] = asdict(opts)
         WRITERS[layout].check(cfg, opts)
     if _check_out(root, marker):
+        if layout == "cvusa" and not (root / LY.POSITIONS_FILE).exists():  # rendered before positions.csv existed
+            jobs = _jobs(layout, train, val)
+            LY.write_cvusa_positions(root, {s: [n for js, _, n in jobs if js == s] for s in ("train", "val")})
         return root
     root.mkdir(parents=True, exist_ok=True)
     _write_marker(root, marker, complete=False)

@@ -1,8 +1,9 @@
 """Writers for the three output layouts: file names, per-sample files and the split/index files.
 
 - cvusa: the CVUSA subset's tree, byte-for-byte: `bingmap/19/NNNNNNN.jpg`, `streetview/panos/NNNNNNN.jpg`,
-  `streetview/annotations/NNNNNNN.png`, `splits/train-19zl.csv` and `splits/val-19zl.csv` (no header).
-  Numbering starts at 0000001; the val rows follow the train rows.
+  `streetview/annotations/NNNNNNN.png`, `splits/train-19zl.csv` and `splits/val-19zl.csv` (no header), plus
+  geoloc's own `positions.csv` (made-up UTM positions, as for cvact). Numbering starts at 0000001; the val rows
+  follow the train rows.
 - cvact: `ANU_data_small/streetview/{id}_grdView.jpg`, `ANU_data_small/satview_polish/{id}_satView_polish.jpg` and
   `ACT_data.mat` with panoIds, trainSet.trainInd, valSet.valInd, valSetAll.valInd (1-based) and utm.
 - dynamic: see docs/dynamic_layout.md.
@@ -20,6 +21,7 @@ import cv2
 import numpy as np
 import scipy.io
 
+from geoloc.data.positions import POSITIONS_FILE, positions_text
 
 CVUSA_SPLITS = {"train": "splits/train-19zl.csv", "val": "splits/val-19zl.csv"}
 DYNAMIC_HEADER = "sample,place,role,x,y,yaw,sun_azimuth,sun_elevation\n"
@@ -69,6 +71,13 @@ def write_cvusa_splits(root: Path, numbers: dict) -> None:
     for split, rel in CVUSA_SPLITS.items():
         rows = "".join(",".join(cvusa_files(n)) + "\n" for n in numbers[split])
         write_bytes(root / rel, rows.encode())
+    write_cvusa_positions(root, numbers)
+
+
+def write_cvusa_positions(root: Path, numbers: dict) -> None:
+    """positions.csv (geoloc/data/positions.py): each place's made-up UTM position, as CVACT's layout has."""
+    rows = [(cvusa_files(n)[1], *place_utm(n)) for split in ("train", "val") for n in numbers[split]]
+    write_bytes(root / POSITIONS_FILE, positions_text(rows, "xy").encode())
 
 
 # -- cvact ------------------------------------------------------------------------------------------------------

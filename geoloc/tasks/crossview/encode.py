@@ -31,6 +31,23 @@ def encode(task, engine, loader, keys=("query", "reference")) -> dict:
     return {k: v[order].cpu() for k, v in out.items()}
 
 
+@torch.no_grad()
+def encode_images(task, engine, loader, encoder) -> torch.Tensor:
+    """N x dim float32 CPU descriptors of a ViewImages loader's images (batch["image"]) through `encoder` (a branch
+    of `task.model`: `task.model.encoders(...)` picks it), in dataset order."""
+    was_training = task.training
+    task.eval()
+    descriptors, order = [], []
+    for batch in loader:
+        batch = engine.to_device(batch)
+        with engine.autocast():
+            descriptors.append(encoder(batch["image"]).float())
+        order.append(batch["index"])
+    out, index = dist.all_gather_variable(torch.cat(descriptors)), dist.all_gather_variable(torch.cat(order))
+    task.train(was_training)
+    return out[torch.argsort(index)].cpu()
+
+
 def plain_pairs_loader(engine, pairs, batch_size: int):
     """A loader over the training pairs without augmentation, for a similarity sampler's descriptors each epoch
     (built once: with persistent workers, a new loader per epoch would start its workers again)."""

@@ -3,9 +3,10 @@
     python evaluate.py ckpt=.../best.pt gallery.save=DIR [gallery.backend=faiss gallery.kind=ivfpq]
     python evaluate.py ckpt=.../best.pt gallery.load=DIR      # only the query branch runs
 
-DIR holds `gallery.pt` (GalleryIndex.save) and `gallery.json` (what it was built from, and the reference spread).
-Query i's true match is row i of the gallery, so the queries must come from the split the gallery was built on.
-With `kind=flat` the recall equals the exact evaluation. Both ways run the checks of the validation path
+DIR holds `gallery.pt` (GalleryIndex.save), `gallery.json` (what it was built from, and the reference spread) and
+the places (`references.jsonl`, `queries.jsonl`: geoloc/tasks/crossview/places.py), which localize.py reads.
+Gallery row j is the split's reference j, so the queries must come from the split the gallery was built on.
+With `kind=flat` the recall equals the exact evaluation (AP, for labelled splits, is left to it). Both ways run the checks of the validation path
 (geoloc.eval.descriptors): NaN/inf descriptors raise before anything is saved, and a collapsed gallery reports
 recall 0 with a warning (the spread of a saved gallery is measured when it is built; a collapsed one is not saved).
 """
@@ -20,11 +21,17 @@ from pathlib import Path
 import torch
 
 from geoloc.config import ConfigError
+from geoloc.data.crossview import EvalData
+from geoloc.data.geo import distance_m
+from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine import distributed as dist
 from geoloc.eval.descriptors import check_descriptors, guarded_recall
 from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.geo_error import metre_summary
 from geoloc.eval.recall import one_percent_k
-from geoloc.tasks.crossview.encode import encode
+from geoloc.eval.retrieval_metrics import collapsed_split_metrics
+from geoloc.tasks.crossview.encode import encode, encode_images
+from geoloc.tasks.crossview.places import split_positions, write_places
 
 
 @dataclass
@@ -54,46 +61,80 @@ def build_index(reference: torch.Tensor, cfg: GalleryConfig) -> GalleryIndex:
     return index.add(reference)
 
 
-def recall_from_index(index: GalleryIndex, query: torch.Tensor, ks=(1, 5, 10)) -> dict[str, float]:
-    """R@K and R@1% of queries whose true match is gallery row i, from one top-k search.
+def recall_from_index(index: GalleryIndex, query: torch.Tensor, ks=(1, 5, 10), positives=None) -> dict[str, float]:
+    """R@K and R@1% of queries whose true match is gallery row positives[i] (default i), from one top-k search.
 
     rank = the number of returned items scored strictly above the true match (as the index scored it); a true
-    match not in the top k_max counts as rank >= k_max. For a flat index this is `recall_at_k`'s convention.
+    match not in the top k_max counts as rank >= k_max. For a flat index this is `recall_at_k`'s convention
+    (semi-positives count as any other reference, DESIGN.md "Retrieval with positives").
     """
+    return _index_ranks(index, query, ks, positives)[0]
+
+
+def _index_ranks(index: GalleryIndex, query: torch.Tensor, ks, positives) -> tuple[dict, torch.Tensor]:
+    """(recall dict, the Q x k_max returned rows)."""
     k_pct = one_percent_k(len(index))
     kmax = min(max(*ks, k_pct), len(index))
     scores, rows = index.search(query, kmax)
-    own = rows == torch.arange(query.shape[0])[:, None]
+    truth = torch.arange(query.shape[0]) if positives is None else torch.as_tensor(positives, dtype=torch.long)
+    own = rows == truth[:, None]
     found = own.any(dim=1)
     own_score = torch.where(found, (scores * own).sum(dim=1), torch.full_like(scores[:, 0], float("inf")))
     ranks = torch.where(found, (scores > own_score[:, None]).sum(dim=1), torch.full_like(rows[:, 0], kmax))
     out = {f"R@{k}": float((ranks < k).double().mean()) for k in ks}
     out["R@1%"] = float((ranks < k_pct).double().mean())
+    return out, rows
+
+
+def index_metrics(index: GalleryIndex, query: torch.Tensor, split: RetrievalSplit) -> dict[str, float]:
+    """What a saved gallery can score of a split: R@K and R@1% against each query's positive, VIGOR's hit rate
+    (top-1 is the positive or a semi-positive) and the top-1 metre error where the split has positions. AP
+    (University-1652) needs the whole ranking and is left to the exact evaluation without gallery.*."""
+    out, rows = _index_ranks(index, query, (1, 5, 10), None if split.one_to_one else split.positives)
+    top1 = rows[:, 0].numpy()
+    if split.semi_positives is not None:
+        hits = (top1 == split.positives) | (split.semi_positives == top1[:, None]).any(axis=1)
+        out["hit_rate"] = float(hits.mean())
+    kind, query_pos, reference_pos = split_positions(split)
+    if kind is not None and not split.one_to_one:
+        out.update(metre_summary(distance_m(query_pos, reference_pos[top1], kind)))
     return out
 
 
-def evaluate(task, engine, dataset, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
+def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", "reference")) -> dict:
+    """{side: descriptors} of the split's queries and / or references, each image through its view's branch."""
+    if data.pairs is not None:
+        return encode(task, engine, engine.loader(data.pairs, batch_size, train=False), keys=sides)
+    encoders = dict(zip(("query", "reference"), task.model.encoders(data.split.aerial_queries)))
+    images = {"query": data.queries, "reference": data.references}
+    return {side: encode_images(task, engine, engine.loader(images[side], batch_size, train=False), encoders[side])
+            for side in sides}
+
+
+def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
     """Build-and-save or load the gallery, then score the split's queries against it."""
+    split = data.split
     if cfg.load:
         folder = Path(cfg.load)
         saved = json.loads((folder / "gallery.json").read_text()) if (folder / "gallery.json").is_file() else None
         if saved is None:
             raise FileNotFoundError(f"{folder} holds no gallery (gallery.json); build one with gallery.save={folder}")
-        if saved["num_references"] != len(dataset) or saved["dim"] != task.model_cfg.dim:
+        if saved["num_references"] != split.num_references or saved["dim"] != task.model_cfg.dim:
             raise ConfigError(
                 f"the gallery in {folder} has {saved['num_references']} references of dim {saved['dim']} (built "
-                f"from {saved.get('dataset')}), but this split has {len(dataset)} queries and the model dim "
-                f"{task.model_cfg.dim}: evaluate the split and checkpoint it was built from")
+                f"from {saved.get('dataset')}), but this split has {split.num_references} references and the model "
+                f"dim {task.model_cfg.dim}: evaluate the split and checkpoint it was built from")
         if "reference_spread" not in saved:
             raise ConfigError(f"the gallery in {folder} was built by an older geoloc that did not check its "
                               "descriptors (no reference_spread in gallery.json): rebuild it with "
                               f"gallery.save={folder}")
         spread = saved["reference_spread"]
         index = GalleryIndex.load(folder / "gallery.pt", device=engine.device)
-        query = encode(task, engine, engine.loader(dataset, batch_size, train=False), keys=("query",))["query"]
+        query = encode_split(task, engine, data, batch_size, sides=("query",))["query"]
         check_descriptors(query)
-        return {**guarded_recall(lambda: recall_from_index(index, query), spread), "num_references": len(index)}
-    desc = encode(task, engine, engine.loader(dataset, batch_size, train=False))
+        return {**guarded_recall(lambda: index_metrics(index, query, split), spread,
+                                 collapsed=collapsed_split_metrics(split)), "num_references": len(index)}
+    desc = encode_split(task, engine, data, batch_size)
     query, reference = desc["query"], desc["reference"]
     spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
 
@@ -106,12 +147,13 @@ def evaluate(task, engine, dataset, batch_size: int, cfg: GalleryConfig, meta: d
             folder = Path(cfg.save)
             folder.mkdir(parents=True, exist_ok=True)
             index.save(folder / "gallery.pt")
+            places = write_places(folder, split)
             info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
-                    **index.params, "reference_spread": spread, **meta}
+                    **index.params, "reference_spread": spread, **meta, **places}
             (folder / "gallery.json").write_text(json.dumps(info, indent=2) + "\n")
-        return recall_from_index(index, query)
+        return index_metrics(index, query, split)
 
-    metrics = guarded_recall(build_and_score, spread)
+    metrics = guarded_recall(build_and_score, spread, collapsed=collapsed_split_metrics(split))
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
     return {**metrics, "num_references": len(reference)}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import ConfigError, checked, to_yaml
+from geoloc.config import checked, to_yaml
 from geoloc.data import crossview as data
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
@@ -67,14 +67,9 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 
 def evaluate(cfg: DictConfig, state: dict) -> dict:
     """Rebuild model and transforms from the checkpoint's config, score a split, write `metrics_out`."""
-    stored = OmegaConf.create(state["config"])
-    if is_old_layout(stored):
-        stored, state = upgraded_config(stored), {**state, "task": upgraded_state(state["task"])}
+    task, stored = restored_task(state, cfg.ckpt)
     data_section = merged_dataset(stored.dataset, cfg.get("dataset"))
     data_cfg = data.shared_config(data_section)
-    task = build_task(stored)
-    ckpt_io.load_task_state(task, state, cfg.ckpt, hint="Was it written by another task or an edited config? "
-                            "Evaluate it with the config it was trained with.")
     eval_data = data.build_eval(data_section, data_cfg.split)
     trainer = Trainer(TrainerConfig(device=cfg.get("device", "auto"), num_workers=cfg.get("num_workers", 0),
                                     progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
@@ -82,11 +77,9 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     batch_size = data_cfg.val_batch_size or data_cfg.batch_size
     gallery_cfg = checked(cfg.get("gallery") or {}, GalleryConfig, "gallery")
     if gallery_cfg.save or gallery_cfg.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
-        if eval_data.pairs is None:
-            raise ConfigError(f"gallery.save / gallery.load score one-to-one splits (query i matches gallery row i); "
-                              f"{eval_data.split.name} is not one. Evaluate it without gallery.*")
-        meta = {"ckpt": str(cfg.ckpt), "dataset": f"{data_cfg.name} {data_cfg.split} {data_cfg.root}"}
-        metrics = gallery.evaluate(task, trainer.engine, eval_data.pairs, batch_size, gallery_cfg, meta)
+        meta = {"ckpt": str(Path(cfg.ckpt).resolve()), "dataset": f"{data_cfg.name} {data_cfg.split} {data_cfg.root}",
+                "model_fingerprint": ckpt_io.weights_fingerprint(task.model)}
+        metrics = gallery.evaluate(task, trainer.engine, eval_data, batch_size, gallery_cfg, meta)
     else:
         metrics = trainer.validate(task, task.val_dataloaders(eval_data, batch_size, trainer.engine))
     metrics["num_queries"] = len(eval_data)
@@ -98,6 +91,18 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def restored_task(state: dict, ckpt) -> tuple[CrossViewTask, DictConfig]:
+    """The task a checkpoint's config describes, with the checkpoint's weights, and that config (older layouts
+    upgraded: geoloc/tasks/crossview/config.py). `ckpt` names the file in errors."""
+    stored = OmegaConf.create(state["config"])
+    if is_old_layout(stored):
+        stored, state = upgraded_config(stored), {**state, "task": upgraded_state(state["task"])}
+    task = build_task(stored)
+    ckpt_io.load_task_state(task, state, ckpt, hint="Was it written by another task or an edited config? "
+                            "Evaluate it with the config it was trained with.")
+    return task, stored
 
 
 def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:

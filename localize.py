@@ -1,0 +1,19 @@
+"""Localize street images against a saved gallery: python localize.py ckpt=.../best.pt gallery=DIR image=FILE_OR_DIR
+[topk=5] [fov=360] [heading=null] [out=DIR]. Prints one JSON line per image and writes them to out/localize.jsonl,
+with a picture per image (geoloc/localize/)."""
+
+import hydra
+from omegaconf import DictConfig
+
+import geoloc.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="localize")
+def main(cfg: DictConfig) -> None:
+    from geoloc.localize.run import localize
+
+    localize(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -5,13 +5,13 @@ uvicorn all succeed, each with its own image's answer, one at a time inside the 
 from __future__ import annotations
 
 import contextlib
+import json
 import re
 import socket
 import struct
 import sys
 import threading
 import time
-import tomllib
 import types
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -24,6 +24,7 @@ import pytest
 import uvicorn
 from conftest import REPO
 from fastapi.testclient import TestClient
+from test_localize import gallery  # noqa: F401  (a fixture: a 1-epoch TINY checkpoint and its saved gallery)
 
 from geoloc import cli
 from geoloc.serve import create_app, upload
@@ -40,7 +41,7 @@ class FakeLocalizer:
     def info(self) -> dict:
         return {"checkpoint": "fake.pt", "gallery_size": 3, "dim": 8, "device": "cpu"}
 
-    def localize(self, image, fov=360.0, topk=5, name=None) -> dict:
+    def localize(self, image, fov=360.0, topk=5, name=None, **known) -> dict:
         with self._counter:
             self.calls += 1
             self.active += 1
@@ -53,7 +54,7 @@ class FakeLocalizer:
                 return {"score": float("nan")}
             mean_rgb = [round(float(c), 3) for c in image.reshape(-1, 3).mean(axis=0)]
             return {"name": name, "shape": list(image.shape), "dtype": str(image.dtype), "mean_rgb": mean_rgb,
-                    "fov": fov, "topk": [{"rank": r + 1, "reference": f"ref{r}"} for r in range(topk)],
+                    "fov": fov, "known": known, "topk": [{"rank": r + 1, "reference": f"ref{r}"} for r in range(topk)],
                     "heading_deg": 0.0, "position": {"x": 0.0, "y": 0.0}}
         finally:
             with self._counter:
@@ -126,11 +127,13 @@ def test_localize_hands_the_localizer_an_rgb_array_and_returns_its_answer(client
 
 
 @pytest.mark.parametrize("how", ["form", "query"])
-def test_fov_and_topk_come_as_form_fields_or_query_parameters(client, how):
-    fields = {"fov": "90", "topk": "2"}
+def test_fov_topk_and_heading_come_as_form_fields_or_query_parameters(client, how):
+    fields = {"fov": "90", "topk": "2", "heading": "-45.5"}
     kwargs = {"data": fields} if how == "form" else {"params": fields}
     body = client.post("/localize", **GOOD, **kwargs).json()
     assert body["fov"] == 90.0 and [hit["rank"] for hit in body["topk"]] == [1, 2]
+    assert body["known"] == {"heading": -45.5}
+    assert client.post("/localize", **GOOD).json()["known"] == {}  # no heading: the localizer searches it
 
 
 def test_a_setting_given_both_as_form_and_query_is_refused(client, fake):
@@ -143,24 +146,24 @@ BAD_UPLOADS = {  # name: (request, status, what the message must say)
     "text": ({"files": {"image": ("notes.txt", TEXT, "text/plain")}}, 415,
              r"the upload 'notes.txt' is not an image \(it starts with b'hello, this is n'\).* -F image=@"),
     "empty file": ({"files": {"image": ("pano.jpg", b"", "image/jpeg")}}, 400, r"'pano.jpg' is empty \(0 bytes\)"),
-    "empty body": ({}, 400, r"the request body is empty: send the street image as the multipart/form-data file "
-                            r"field 'image'"),
+    "empty body": ({}, 400, r"the request body is empty: send the street image as the multipart/form-data file"),
     "wrong field": ({"files": {"file": ("pano.png", png(RED), "image/png")}}, 422,
                     r"form field 'image': Field required \(send the street image as the multipart"),
     "truncated jpeg": ({"files": {"image": ("cut.jpg", TRUNCATED_JPEG)}}, 400,
                        r"'cut.jpg' is damaged: truncated JPEG.*Send the complete file"),
     "corrupt png": ({"files": {"image": ("bad.png", CORRUPT_PNG)}}, 400,
                     r"'bad.png' is a corrupt PNG: its header reads 8x8 but the image data does not decode"),
-    "fov 0": ({**GOOD, "data": {"fov": "0"}}, 422, r"form field 'fov': Input should be greater than 0 \(the "
-                                                   r"horizontal field of view in degrees, in \(0, 360\]"),
-    "fov 361": ({**GOOD, "params": {"fov": "361"}}, 422, r"query parameter 'fov': Input should be less than or "
-                                                         r"equal to 360 \(the horizontal field of view"),
+    "fov 0": ({**GOOD, "data": {"fov": "0"}}, 422,
+              r"form field 'fov': Input should be greater than 0 \(the horizontal field of view in degrees, in \(0,"),
+    "fov 361": ({**GOOD, "params": {"fov": "361"}}, 422,
+                r"query parameter 'fov': Input should be less than or equal to 360 \(the horizontal field of view"),
     "fov nan": ({**GOOD, "data": {"fov": "nan"}}, 422, r"form field 'fov'"),
     "fov text": ({**GOOD, "data": {"fov": "wide"}}, 422, r"form field 'fov': Input should be a valid number"),
-    "topk 0": ({**GOOD, "data": {"topk": "0"}}, 422, r"form field 'topk': Input should be greater than or equal "
-                                                     r"to 1 \(how many references to return"),
-    "topk 1.5": ({**GOOD, "params": {"topk": "1.5"}}, 422, r"query parameter 'topk': Input should be a valid "
-                                                           r"integer"),
+    "topk 0": ({**GOOD, "data": {"topk": "0"}}, 422,
+               r"form field 'topk': Input should be greater than or equal to 1 \(how many references to return"),
+    "heading inf": ({**GOOD, "data": {"heading": "inf"}}, 422,
+                    r"form field 'heading': Input should be a finite number \(the image's bearing in degrees"),
+    "topk 1.5": ({**GOOD, "params": {"topk": "1.5"}}, 422, r"query parameter 'topk': Input should be a valid integer"),
 }
 
 
@@ -229,6 +232,31 @@ def test_a_failure_inside_the_localizer_is_a_500_with_its_message_and_the_server
     assert client.post("/localize", **GOOD).status_code == 200
 
 
+@pytest.fixture(scope="module")
+def real_localizer(gallery):  # noqa: F811
+    from geoloc.localize import Localizer
+
+    root, ckpt, folder = gallery
+    return root, Localizer.load(ckpt, folder, device="cpu")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fields", [{"topk": "3"}, {"topk": "2", "fov": "120", "heading": "30"}])
+def test_the_real_localizer_answers_through_the_service_exactly_as_when_called(real_localizer, fields):
+    from geoloc.localize import read_street
+
+    root, localizer = real_localizer
+    client = TestClient(create_app(localizer))
+    health = client.get("/health").json()
+    assert health["status"] == "ok" and health["gallery_size"] == 8 and health["device"] == "cpu"
+    pano = max((root / "streetview" / "panos").glob("*.jpg"))  # a query of the gallery's split
+    served = client.post("/localize", files={"image": (pano.name, pano.read_bytes(), "image/jpeg")}, data=fields)
+    assert served.status_code == 200, served.text
+    settings = {key: float(value) for key, value in fields.items() if key != "topk"}
+    direct = localizer.localize(read_street(pano), topk=int(fields["topk"]), name=pano.name, **settings)
+    assert served.json() == json.loads(json.dumps(direct)) and len(direct["topk"]) == int(fields["topk"])
+
+
 @contextlib.contextmanager
 def serving(app):
     """`app` under a real uvicorn on a free loopback port, in a thread; yields the base URL."""
@@ -277,8 +305,8 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
 
     class Localizer:
         @classmethod
-        def load(cls, ckpt, gallery, device="cpu"):
-            loads.append((ckpt, gallery, device))
+        def load(cls, ckpt, gallery_dir, device="cpu"):
+            loads.append((ckpt, gallery_dir, device))
             return FakeLocalizer()
 
     monkeypatch.setitem(sys.modules, "geoloc.localize", types.SimpleNamespace(Localizer=Localizer))
@@ -288,7 +316,8 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
     (app, host, port), = runs
     assert (host, port) == ("127.0.0.1", 8123)
     answer = TestClient(app).post("/localize", **GOOD)  # max_pixels=100 reached the app: 80x40 is over it
-    assert answer.status_code == 413 and "80x40 = 3,200 pixels, over this server's limit of 100 (max_pixels)" in answer.json()["detail"]
+    assert answer.status_code == 413
+    assert "80x40 = 3,200 pixels, over this server's limit of 100 (max_pixels)" in answer.json()["detail"]
 
 
 @pytest.mark.parametrize("argv,code,message", [
@@ -306,6 +335,7 @@ def test_the_console_script_explains_its_usage_and_bad_arguments(capsys, argv, c
 
 
 def test_pyproject_declares_the_script_and_ci_installs_the_serve_extra():
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     assert project["scripts"]["geoloc"] == "geoloc.cli:main"
     extras = project["optional-dependencies"]

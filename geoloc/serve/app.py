@@ -4,11 +4,13 @@
     uvicorn.run(app)                                   # or: geoloc serve ckpt=... gallery=DIR
 
 GET /health -> {"status": "ok", **localizer.info()}
-POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama) and
-`topk` (>= 1, default 5) as form fields or query parameters -> localizer.localize(...)'s dict, as JSON.
+POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama),
+`topk` (>= 1, default 5) and `heading` (degrees clockwise from north when known; default: searched) as form fields
+or query parameters -> localizer.localize(...)'s dict, as JSON.
 
 `localizer` is anything with `localize(image, fov=, topk=, name=)` (image: H×W×3 uint8 RGB; returns a
-JSON-serialisable dict) and `info()` (a JSON-serialisable dict), e.g. geoloc.localize.Localizer.
+JSON-serialisable dict; it gets `heading=` only when the request gives one) and `info()` (a JSON-serialisable dict),
+e.g. geoloc.localize.Localizer.
 Bad input gets a 4xx whose `detail` says what is wrong and what to do; a failure inside the localizer gets a 500
 with its message. Neither stops the server.
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+from typing import Annotated
 
 from fastapi import FastAPI, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
@@ -32,7 +35,9 @@ MAX_PIXELS = 25_000_000  # a 7,072 x 3,536 panorama; VIGOR's are 2,048 x 1,024
 MAX_BYTES = 32 * 2**20
 FOV_RANGE = "the horizontal field of view in degrees, in (0, 360]: 360 for a full panorama (the default)"
 TOPK_RANGE = "how many references to return, an integer >= 1 (default 5)"
-HINTS = {"image": SEND, "fov": FOV_RANGE, "topk": TOPK_RANGE}
+HEADING = ("the image's bearing in degrees clockwise from north, when known (0 for a north-aligned panorama); "
+           "leave it out to have it searched")
+HINTS = {"image": SEND, "fov": FOV_RANGE, "topk": TOPK_RANGE, "heading": HEADING}
 
 
 def create_app(localizer, max_pixels: int = MAX_PIXELS, max_bytes: int = MAX_BYTES) -> FastAPI:
@@ -52,20 +57,25 @@ def create_app(localizer, max_pixels: int = MAX_PIXELS, max_bytes: int = MAX_BYT
 
     # a sync endpoint: FastAPI runs it in its threadpool, so the event loop stays free while the network runs
     @app.post("/localize")
-    def localize(image: UploadFile = File(..., description="the street image: JPEG or PNG"),
-                 fov: float | None = Form(None, gt=0, le=360, description=FOV_RANGE),
-                 topk: int | None = Form(None, ge=1, description=TOPK_RANGE),
-                 fov_query: float | None = Query(None, alias="fov", gt=0, le=360, description=FOV_RANGE),
-                 topk_query: int | None = Query(None, alias="topk", ge=1, description=TOPK_RANGE)) -> Response:
+    def localize(image: Annotated[UploadFile, File(description="the street image: JPEG or PNG")],
+                 fov: Annotated[float | None, Form(gt=0, le=360, description=FOV_RANGE)] = None,
+                 topk: Annotated[int | None, Form(ge=1, description=TOPK_RANGE)] = None,
+                 heading: Annotated[float | None, Form(allow_inf_nan=False, description=HEADING)] = None,
+                 fov_query: Annotated[float | None, Query(alias="fov", gt=0, le=360, description=FOV_RANGE)] = None,
+                 topk_query: Annotated[int | None, Query(alias="topk", ge=1, description=TOPK_RANGE)] = None,
+                 heading_query: Annotated[float | None, Query(alias="heading", allow_inf_nan=False,
+                                                              description=HEADING)] = None) -> Response:
         fov = one_of("fov", fov, fov_query, 360.0)
         topk = one_of("topk", topk, topk_query, 5)
+        heading = one_of("heading", heading, heading_query, None)
+        known = {} if heading is None else {"heading": heading}
         with one_at_a_time:
             try:
                 rgb = decode_upload(image.file.read(), image.filename or "image", max_pixels)
             except UploadError as err:
                 raise HTTPException(err.status, str(err)) from None
             try:
-                result = localizer.localize(rgb, fov=fov, topk=topk, name=image.filename)
+                result = localizer.localize(rgb, fov=fov, topk=topk, name=image.filename, **known)
                 body = json.dumps(result, allow_nan=False)
             except Exception as err:  # the server answers and stays up; the traceback goes to its log
                 log.exception("localize failed for %r", image.filename)

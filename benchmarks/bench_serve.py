@@ -11,6 +11,7 @@ as good as untrained; speed does not depend on them), and its gallery (`python e
 The queries are that render's street panoramas, sent as the JPEG files they are.
 
     nice -n 5 python benchmarks/bench_serve.py                      # 4 clients x 10 requests
+    nice -n 5 python benchmarks/bench_serve.py --heading 0          # north-aligned: no heading search
     python benchmarks/bench_serve.py --clients 8 --requests 25 --ckpt RUN/best.pt --gallery DIR --images 'DIR/*.jpg'
 """
 from __future__ import annotations
@@ -74,7 +75,8 @@ def start_server(ckpt: Path, gallery: Path, port: int, env: dict, log: Path) -> 
     raise RuntimeError(f"the server did not answer /health within 180 s; see {log}")
 
 
-def load(url: str, images: list[tuple[str, bytes]], clients: int, requests: int, max_seconds: float) -> dict:
+def load(url: str, images: list[tuple[str, bytes]], clients: int, requests: int, max_seconds: float,
+         fields: dict) -> dict:
     """`clients` threads x `requests` POSTs each (fewer once max_seconds have passed); latencies in ms."""
     latencies, errors, lock = [], [], threading.Lock()
     stop_at = time.monotonic() + max_seconds
@@ -87,7 +89,7 @@ def load(url: str, images: list[tuple[str, bytes]], clients: int, requests: int,
                 name, data = images[(c * requests + r) % len(images)]
                 start = time.perf_counter()
                 try:
-                    answer = http.post("/localize", files={"image": (name, data, "image/jpeg")})
+                    answer = http.post("/localize", files={"image": (name, data, "image/jpeg")}, data=fields)
                     ok = answer.status_code == 200
                     problem = None if ok else f"{answer.status_code}: {answer.text[:200]}"
                 except httpx.HTTPError as err:
@@ -121,6 +123,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path,
                         default=Path(os.environ.get("GEOLOC_CACHE", Path.home() / ".cache/geoloc")) / "bench_serve")
     parser.add_argument("--gallery-size", type=int, default=200, help="references, when building")
+    parser.add_argument("--heading", type=float, help="send this heading (no search over the 36 candidates)")
     args = parser.parse_args()
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
            "GEOLOC_CACHE": str(args.work / "cache")}
@@ -136,9 +139,10 @@ def main() -> None:
     server = start_server(ckpt, gallery, port, env, args.work / "server.log")
     url = f"http://127.0.0.1:{port}"
     try:
-        load(url, images, 1, 3, args.max_seconds)  # warm-up: first-call allocations, grid caches
+        fields = {} if args.heading is None else {"heading": str(args.heading)}
+        load(url, images, 1, 3, args.max_seconds, fields)  # warm-up: first-call allocations, grid caches
         for clients, requests in ((1, args.requests), (args.clients, args.requests)):
-            figures = load(url, images, clients, requests, args.max_seconds)
+            figures = load(url, images, clients, requests, args.max_seconds, fields)
             print(f"{clients} client(s) x {requests} requests: {figures['requests']} done, errors "
                   f"{figures['errors']} {figures['first_error'] or ''}\n  latency p50 {figures['p50_ms']:.0f} ms, "
                   f"p99 {figures['p99_ms']:.0f} ms, mean {figures['mean_ms']:.0f} ms; throughput "

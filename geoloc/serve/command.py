@@ -18,7 +18,7 @@ USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=800
   max_pixels  a larger image gets 413, refused from its header before it is decoded
   max_bytes   a larger request body gets 413
 
-POST /localize (multipart field image; fov, topk) and GET /health; see README "Query service"."""
+POST /localize (multipart field image; fov, topk, heading) and GET /health; see README "Query service"."""
 
 
 @dataclass

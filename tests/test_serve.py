@@ -328,6 +328,7 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
     (["serve", "ckpt=a", "gallery=g", "prt=80"], 2, "Key 'prt' not in 'ServeConfig'"),
     (["serve", "ckpt=a", "gallery=g", "port=http"], 2, "'http' of type 'str' could not be converted to Integer"),
     (["serve", "ckpt", "gallery=g"], 2, "'ckpt' is not key=value"),
+    (["serve", "ckpt=no/such.pt", "gallery=g"], 2, "geoloc serve: checkpoint not found: no/such.pt"),
 ])
 def test_the_console_script_explains_its_usage_and_bad_arguments(capsys, argv, code, message):
     assert cli.main(argv) == code

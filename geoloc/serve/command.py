@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 from omegaconf import MISSING
@@ -46,8 +47,11 @@ def main(args: list[str]) -> int:
     cfg = parse_keys(args, ServeConfig, "serve")
     from geoloc.localize import Localizer  # torch and the model code: only once the arguments are good
 
-    # once, before the first request: every request shares this model and gallery
-    localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device)
+    try:  # once, before the first request: every request shares this model and gallery
+        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device)
+    except FileNotFoundError as err:  # its message names the file and how to make it
+        print(f"geoloc serve: {err}", file=sys.stderr)
+        return 2
     app = create_app(localizer, max_pixels=cfg.max_pixels, max_bytes=cfg.max_bytes)
     uvicorn.run(app, host=cfg.host, port=cfg.port)  # one worker process: a second would load a second model
     return 0

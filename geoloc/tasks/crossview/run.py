@@ -67,14 +67,9 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 
 def evaluate(cfg: DictConfig, state: dict) -> dict:
     """Rebuild model and transforms from the checkpoint's config, score a split, write `metrics_out`."""
-    stored = OmegaConf.create(state["config"])
-    if is_old_layout(stored):
-        stored, state = upgraded_config(stored), {**state, "task": upgraded_state(state["task"])}
+    stored, task = restored_task(state, cfg.ckpt)
     data_section = merged_dataset(stored.dataset, cfg.get("dataset"))
     data_cfg = data.shared_config(data_section)
-    task = build_task(stored)
-    ckpt_io.load_task_state(task, state, cfg.ckpt, hint="Was it written by another task or an edited config? "
-                            "Evaluate it with the config it was trained with.")
     eval_data = data.build_eval(data_section, data_cfg.split)
     trainer = Trainer(TrainerConfig(device=cfg.get("device", "auto"), num_workers=cfg.get("num_workers", 0),
                                     progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
@@ -98,6 +93,18 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def restored_task(state: dict, path) -> tuple[DictConfig, CrossViewTask]:
+    """(the checkpoint's stored config, the task it builds with the checkpoint's weights loaded), on the CPU.
+    Checkpoints of the pre-registry layout are upgraded first (config.py). Used by evaluate and export."""
+    stored = OmegaConf.create(state["config"])
+    if is_old_layout(stored):
+        stored, state = upgraded_config(stored), {**state, "task": upgraded_state(state["task"])}
+    task = build_task(stored)
+    ckpt_io.load_task_state(task, state, path, hint="Was it written by another task or an edited config? "
+                            "Use it with the config it was trained with.")
+    return stored, task
 
 
 def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:

@@ -16,6 +16,7 @@ from geoloc.data.crossview import IMAGENET_MEAN, IMAGENET_STD, CrossViewDataConf
 READER_QUERY_VIEWS = {"cvact": "sphere", "vigor": "sphere", "u1652": "image"}
 QUERY_VIEWS = ("panorama", "sphere", "image")
 
+NORTH = "an equirectangular panorama, north-aligned: north at the centre column (CVUSA's convention)"
 SPHERE_CROP = "full-sphere panorama: keep the horizon band, rows H/4 to 3H/4 (SAFA's CVACT crop)"
 
 
@@ -34,7 +35,7 @@ def query_input(cfg: CrossViewDataConfig, view: str) -> tuple[tuple[int, int], l
     s = cfg.aerial_size
     if view == "image":
         return (s, s), [f"resize to {s}x{s} (cv2.INTER_AREA)"]
-    steps = [SPHERE_CROP] if view == "sphere" else []
+    steps = [NORTH] + ([SPHERE_CROP] if view == "sphere" else [])
     if cfg.alignment == "ipt":
         ipt = f"inverse polar transform to {s}x{s}: geoloc.data.polar.street_to_aerial(img, ({s}, {s}))"
         return (s, s), [*steps, ipt]

@@ -94,14 +94,15 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
 
 
 def restored_task(state: dict, ckpt) -> tuple[CrossViewTask, DictConfig]:
-    """The task a checkpoint's config describes, with the checkpoint's weights, and that config (older layouts
-    upgraded: geoloc/tasks/crossview/config.py). `ckpt` names the file in errors."""
+    """The task a checkpoint's config describes, with the checkpoint's weights, on the CPU, and that config (older
+    layouts upgraded: geoloc/tasks/crossview/config.py). `ckpt` names the file in errors. Used by evaluate, export
+    and localize."""
     stored = OmegaConf.create(state["config"])
     if is_old_layout(stored):
         stored, state = upgraded_config(stored), {**state, "task": upgraded_state(state["task"])}
     task = build_task(stored)
     ckpt_io.load_task_state(task, state, ckpt, hint="Was it written by another task or an edited config? "
-                            "Evaluate it with the config it was trained with.")
+                            "Use it with the config it was trained with.")
     return task, stored
 
 

@@ -1,0 +1,16 @@
+"""Export a cross-view checkpoint's encoders: python export.py ckpt=outputs/.../best.pt [format=onnx] [out=DIR]
+[opset=N] [overwrite=true]. Writes query.onnx, reference.onnx and encoders.json (what each file expects)."""
+
+import hydra
+from omegaconf import DictConfig
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="export")
+def main(cfg: DictConfig) -> None:
+    from geoloc.deploy.onnx_export import export
+
+    export(cfg)
+
+
+if __name__ == "__main__":
+    main()

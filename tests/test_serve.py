@@ -305,14 +305,15 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
 
     class Localizer:
         @classmethod
-        def load(cls, ckpt, gallery_dir, device="cpu"):
-            loads.append((ckpt, gallery_dir, device))
+        def load(cls, ckpt, gallery_dir, device="cpu", heading_steps=36):
+            loads.append((ckpt, gallery_dir, device, heading_steps))
             return FakeLocalizer()
 
     monkeypatch.setitem(sys.modules, "geoloc.localize", types.SimpleNamespace(Localizer=Localizer))
     monkeypatch.setattr(uvicorn, "run", lambda app, host, port: runs.append((app, host, port)))
-    assert cli.main(["serve", "ckpt=run/best.pt", "gallery=run/gallery", "port=8123", "max_pixels=100"]) == 0
-    assert loads == [("run/best.pt", "run/gallery", "cpu")]
+    assert cli.main(["serve", "ckpt=run/best.pt", "gallery=run/gallery", "port=8123", "max_pixels=100",
+                     "heading_steps=12"]) == 0
+    assert loads == [("run/best.pt", "run/gallery", "cpu", 12)]
     (app, host, port), = runs
     assert (host, port) == ("127.0.0.1", 8123)
     answer = TestClient(app).post("/localize", **GOOD)  # max_pixels=100 reached the app: 80x40 is over it

@@ -10,12 +10,13 @@ from omegaconf import MISSING
 from geoloc.serve.app import MAX_BYTES, MAX_PIXELS, create_app
 
 USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=cpu]
-                    [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
+                    [heading_steps=36] [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
 
   ckpt        a checkpoint written by train.py (best.pt)
   gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
   host, port  where to listen (127.0.0.1: this machine only; 0.0.0.0: every interface)
   device      cpu, cuda, cuda:1 ...
+  heading_steps  candidate headings tried when a request gives no heading (36: every 10 degrees)
   max_pixels  a larger image gets 413, refused from its header before it is decoded
   max_bytes   a larger request body gets 413
 
@@ -29,12 +30,15 @@ class ServeConfig:
     host: str = "127.0.0.1"
     port: int = 8000
     device: str = "cpu"
+    heading_steps: int = 36
     max_pixels: int = MAX_PIXELS
     max_bytes: int = MAX_BYTES
 
     def __post_init__(self):
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if self.heading_steps < 1:
+            raise ValueError(f"heading_steps must be >= 1, got {self.heading_steps}")
         if self.max_pixels < 1 or self.max_bytes < 1:
             raise ValueError(f"max_pixels and max_bytes must be >= 1, got {self.max_pixels} and {self.max_bytes}")
 
@@ -48,7 +52,7 @@ def main(args: list[str]) -> int:
     from geoloc.localize import Localizer  # torch and the model code: only once the arguments are good
 
     try:  # once, before the first request: every request shares this model and gallery
-        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device)
+        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
     except FileNotFoundError as err:  # its message names the file and how to make it
         print(f"geoloc serve: {err}", file=sys.stderr)
         return 2

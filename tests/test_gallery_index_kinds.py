@@ -143,3 +143,15 @@ def test_build_index_auto_switches_to_pq_refine_at_the_threshold(easy):
     assert (index.backend, index.kind, len(index)) == ("faiss", "pq_refine", 5000)
     with pytest.raises(ConfigError, match="gallery.m=5 .* divide the descriptor dim 32"):
         build_index(ref, GalleryConfig(auto_exact_below=100, m=5))
+
+
+def test_query_blocks_give_the_one_call_result(easy, monkeypatch):
+    import geoloc.eval.gallery as gallery_mod
+
+    query, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind="pq_refine", **SMALL).add(reference)
+    whole = index.search(query, 10)
+    monkeypatch.setattr(gallery_mod, "_chunk_rows", lambda n_cols: 7)  # 300 queries in 43 calls
+    blocked = index.search(query, 10)
+    torch.testing.assert_close(blocked[1], whole[1])
+    torch.testing.assert_close(blocked[0], whole[0])

@@ -33,7 +33,6 @@ __all__ = ["GalleryIndex", "import_faiss", "as_float_tensor"]
 
 _FORMAT = "geoloc.gallery/1"
 _ADD_BLOCK = 65536
-_SEARCH_BLOCK = 1024  # queries per FAISS search call: bounds the per-query buffers (k_factor * k candidates)
 KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "hnsw")
 PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine")  # m sub-quantisers must divide dim
 
@@ -223,7 +222,9 @@ class GalleryIndex:
             if self.kind == "flat":  # one call: the exact path stays as recall_at_k(backend="faiss") has it
                 scores, idx = self._index.search(q, k)
                 return torch.from_numpy(scores), torch.from_numpy(idx)
-            blocks = [self._index.search(q[s:s + _SEARCH_BLOCK], k) for s in range(0, q.shape[0], _SEARCH_BLOCK)]
+            # Queries per call: FAISS holds k (refine kinds: k_factor * k) candidates per query of a call.
+            step = _chunk_rows(k * (self.params["k_factor"] if self.kind.endswith("_refine") else 1))
+            blocks = [self._index.search(q[s:s + step], k) for s in range(0, q.shape[0], step)]
             return (torch.from_numpy(np.concatenate([b[0] for b in blocks])),
                     torch.from_numpy(np.concatenate([b[1] for b in blocks])))
         return self._search_torch(q, k)

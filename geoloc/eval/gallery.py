@@ -132,7 +132,7 @@ class GalleryIndex:
 
     def __init__(self, dim: int, backend: str = "torch", kind: str = "flat", nlist: int = 1024, m: int = 64,
                  nbits: int = 8, nprobe: int = 16, k_factor: int = 16, hnsw_m: int = 32, ef_construction: int = 40,
-                 ef_search: int = 128, device: str | torch.device | None = None, chunk_size: int = 1024):
+                 ef_search: int = 256, device: str | torch.device | None = None, chunk_size: int = 1024):
         if backend not in ("torch", "faiss"):
             raise ValueError(f"backend must be 'torch' or 'faiss', got {backend!r}")
         if kind not in KINDS or (backend == "torch" and kind != "flat"):

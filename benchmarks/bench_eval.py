@@ -1,18 +1,23 @@
-"""Retrieval evaluation: time and peak memory of recall / gallery search, exact against FAISS IVF-PQ.
+"""Retrieval evaluation: time and peak memory of recall / gallery search, exact against the FAISS gallery kinds.
 
 Two settings, each case in its own process so that its peak memory is its own:
 1. CVUSA val size: N = 8,884 queries and references, D = 4,096 (the paper's descriptor size): recall_at_k with
    the exact torch backend and with the FAISS flat backend (the two must print the same recall).
 2. A country-scale gallery: 1,000,000 references. 1M x 4,096 float32 is 16 GB, more than a shared 24 GB machine
    should hold, so the default is D = 512 (2 GB); pass --large-dim 4096 on a machine that has the memory.
-   Exact search (torch, chunked) against IVF-PQ (FAISS): build time, query time, peak memory and the recall
-   IVF-PQ keeps. Only --large-queries queries are timed (default 1,000); the gallery is full size.
+   Exact search (torch, chunked) side by side with each approximate GalleryIndex kind in --kinds (ivfpq,
+   pq_refine, ivfpq_refine, hnsw), each over a sweep of its search knob (--nprobe, --k-factor, --ef-search):
+   recall kept (approximate / exact R@1 and R@10), ms per query, index size (FAISS serialize_index bytes), the
+   process's peak memory rise and the build time. Only --large-queries queries are timed (default 1,000); the
+   gallery is full size. The load average (/proc/loadavg) is printed with each case: the CPU may be shared.
 
 Data: synthetic unit descriptors of intrinsic dimension --rank (64) in D dimensions, plus a little isotropic noise;
 query i is reference i's latent code plus --noise (--large-noise) Gaussian noise, chosen so that exact recall is
 high but not 100%. Peak memory is the rise of the process's peak RSS (VmHWM) over the RSS after the data was made.
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_eval.py                   # both settings, ~5 min on one idle core
+    OMP_NUM_THREADS=1 python benchmarks/bench_eval.py --n 0             # 1M gallery: ~35 min on a busy core (hnsw
+                                                                        # builds for ~25 of them)
+    OMP_NUM_THREADS=1 python benchmarks/bench_eval.py --n 0 --kinds pq_refine ivfpq_refine  # ~5 min
     python benchmarks/bench_eval.py --large-n 0                         # CVUSA size only
     python benchmarks/bench_eval.py --large-n 200000 --large-queries 500  # quicker large setting
 """
@@ -31,10 +36,12 @@ def make_data(n_ref, n_query, dim, noise, seed, rank=64, iso=0.1):
     leave IVF nothing to cluster): reference = z W + a little isotropic noise, z ~ N(0, I_rank); query i is
     z_i + noise * N(0, I_rank) mapped by the same W."""
     rng = np.random.default_rng(seed)
-    w = rng.standard_normal((rank, dim), dtype=np.float32) / np.sqrt(rank)
+    # float32 throughout (numpy >= 2 would promote to float64 on a np.sqrt scalar): the exact torch search keeps
+    # the dtype it is given, and float64 would time it on twice the bytes.
+    w = rng.standard_normal((rank, dim), dtype=np.float32) / np.float32(np.sqrt(rank))
     z = rng.standard_normal((n_ref, rank), dtype=np.float32)
     ref = z @ w
-    scale = iso * np.linalg.norm(ref, axis=1, keepdims=True) / np.sqrt(dim)
+    scale = np.float32(iso / np.sqrt(dim)) * np.linalg.norm(ref, axis=1, keepdims=True)
     for s in range(0, n_ref, 100_000):  # in blocks: no second n_ref x dim temporary
         ref[s:s + 100_000] += scale[s:s + 100_000] * rng.standard_normal((min(100_000, n_ref - s), dim),
                                                                           dtype=np.float32)
@@ -60,6 +67,11 @@ def reset_peak():
         return True
     except OSError:
         return False
+
+
+def load_average():
+    with open("/proc/loadavg") as f:
+        return " ".join(f.read().split()[:3])
 
 
 def timed(fn):
@@ -94,23 +106,43 @@ def run_case(args):
         res["recall"], res["time_s"] = timed(lambda: recall_at_k(query, ref, backend="faiss"))
     elif args.case == "large-exact":
         index = GalleryIndex(dim, backend="torch").add(ref)
+        res["index_mib"] = ref.nbytes / 2**20
         (_, idx), res["time_s"] = timed(lambda: index.search(query, 10))
         res["recall"] = recall_from_topk(idx.numpy())
-    elif args.case == "large-ivfpq":
-        import faiss
-
-        faiss.omp_set_num_threads(args.threads)
-        index = GalleryIndex(dim, backend="faiss", kind="ivfpq", nlist=args.nlist, m=args.m, nbits=args.nbits)
-        _, res["build_s"] = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)))
-        res["index_mib"] = (index._index.code_size + 8) * n_ref / 2**20  # PQ codes + 64-bit ids
-        res["probes"] = []
-        for nprobe in args.nprobe:
-            index.set_nprobe(nprobe)
-            (_, idx), time_s = timed(lambda: index.search(query, 10))
-            res["probes"].append(dict(nprobe=nprobe, time_s=time_s, recall=recall_from_topk(idx.numpy())))
-    res["peak_mib"] = _status("VmHWM") - base
+    else:
+        res.update(run_approximate(args, args.case.removeprefix("large-"), query, ref))
+    res["peak_mib"] = res.pop("peak_before_size_mib", _status("VmHWM")) - base
     res["peak_is_exact"] = exact_peak
+    res["load"] = load_average()
     print(json.dumps(res))
+
+
+SWEPT = {"ivfpq": "nprobe", "pq_refine": "k_factor", "ivfpq_refine": "nprobe", "hnsw": "ef_search"}
+IVF_K_FACTOR = 16  # ivfpq_refine sweeps nprobe at this shortlist multiple
+
+
+def run_approximate(args, kind, query, ref):
+    """Build one FAISS kind, then search with each value of its swept knob (--repeat times each)."""
+    import faiss
+
+    from geoloc.eval import GalleryIndex
+
+    faiss.omp_set_num_threads(args.threads)
+    index = GalleryIndex(ref.shape[1], backend="faiss", kind=kind, nlist=args.nlist, m=args.m, nbits=args.nbits,
+                         k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m, ef_construction=args.ef_construction)
+    _, build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)))
+    knob = SWEPT[kind]
+    sweep = []
+    for value in getattr(args, knob):
+        index.set_search_params(**{knob: value})
+        times = []
+        for _ in range(args.repeat):
+            (_, idx), time_s = timed(lambda: index.search(query, 10))
+            times.append(time_s)
+        sweep.append(dict(knob=knob, value=value, times_s=times, recall=recall_from_topk(idx.numpy())))
+    peak = _status("VmHWM")  # before serialize_index makes its copy
+    return dict(build_s=build_s, sweep=sweep, peak_before_size_mib=peak,
+                index_mib=len(faiss.serialize_index(index._index)) / 2**20)
 
 
 def recall_from_topk(idx):
@@ -128,7 +160,13 @@ def spawn(case, argv):
 
 
 def fmt_recall(r):
-    return " ".join(f"{k} {100 * v:6.2f}" for k, v in r.items())
+    return " / ".join(f"{100 * v:5.1f}" for v in r.values())
+
+
+def describe(kind, args):
+    return {"ivfpq": f"nlist {args.nlist} m {args.m}x{args.nbits}", "pq_refine": f"m {args.m}x4",
+            "ivfpq_refine": f"nlist {args.nlist} m {args.m}x4 k_factor {IVF_K_FACTOR}",
+            "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}"}[kind]
 
 
 def main(args, argv):
@@ -141,23 +179,33 @@ def main(args, argv):
         for case in ("small-torch", "small-faiss"):
             r = spawn(case, argv)
             results.append(r)
-            print(f"  {case:12s} {r['time_s']:7.2f} s   peak +{r['peak_mib']:7.0f} MiB   {fmt_recall(r['recall'])}")
+            print(f"  {case:12s} {r['time_s']:7.2f} s   peak +{r['peak_mib']:7.0f} MiB   R@1 / R@5 / R@10 "
+                  f"{fmt_recall(r['recall'])}   load avg {r['load']}")
     if args.large_n:
         print(f"\n[2] large gallery: {args.large_n:,} references, D = {args.large_dim} ({args.large_n:,} x 4,096 "
-              f"float32 would take {args.large_n * 4096 * 4 / 2**30:.1f} GiB), {args.large_queries:,} queries, top-10")
-        exact, ivf = spawn("large-exact", argv), spawn("large-ivfpq", argv)
-        results += [exact, ivf]
-        per_query = 1e3 / args.large_queries
-        print(f"  exact (torch)  search {exact['time_s']:7.2f} s ({per_query * exact['time_s']:6.2f} ms/query)   "
-              f"peak +{exact['peak_mib']:6.0f} MiB   {fmt_recall(exact['recall'])}")
-        print(f"  IVF-PQ nlist {args.nlist} m {args.m} nbits {args.nbits}, trained on "
-              f"{min(args.train_points, args.large_n):,}: build {ivf['build_s']:.1f} s, codes {ivf['index_mib']:.0f} "
-              f"MiB, peak +{ivf['peak_mib']:.0f} MiB")
-        for p in ivf["probes"]:
-            kept = ", ".join(f"{100 * p['recall'][k] / v:.1f}% of {k}" for k, v in exact["recall"].items() if v)
-            print(f"    nprobe {p['nprobe']:4d}  search {p['time_s']:7.2f} s ({per_query * p['time_s']:6.2f} "
-                  f"ms/query, {exact['time_s'] / p['time_s']:5.1f}x faster)   {fmt_recall(p['recall'])}   "
-                  f"keeps {kept}")
+              f"float32 would take {args.large_n * 4096 * 4 / 2**30:.1f} GiB), {args.large_queries:,} queries, top-10; "
+              f"{args.threads} thread(s); search times: best of {args.repeat} (worst in brackets)")
+        print(f"  {'index':60s} {'ms/query':>16s} {'R@1 kept':>8s} {'R@10 kept':>9s} {'index MiB':>9s} "
+              f"{'peak rise':>9s} {'build s':>7s}  R@1 / R@5 / R@10 (%)   load avg")
+        exact = spawn("large-exact", argv)
+        results.append(exact)
+        ms = 1e3 / args.large_queries
+        print(f"  {'exact (torch, chunked)':60s} {ms * exact['time_s']:8.2f}{'':8s} {'100%':>8s} {'100%':>9s} "
+              f"{exact['index_mib']:9.0f} {exact['peak_mib']:9.0f} {'-':>7s}  {fmt_recall(exact['recall'])}   "
+              f"{exact['load']}")
+        for kind in args.kinds:
+            r = spawn(f"large-{kind}", argv)
+            results.append(r)
+            for i, p in enumerate(r["sweep"]):
+                name = f"{kind} {describe(kind, args)}, {p['knob']} {p['value']}"
+                best, worst = min(p["times_s"]), max(p["times_s"])
+                spread = f"({ms * worst:.2f})" if len(p["times_s"]) > 1 else ""
+                kept = [f"{100 * p['recall'][k] / exact['recall'][k]:.1f}%" if exact["recall"][k] else "-"
+                        for k in ("R@1", "R@10")]
+                sizes = (f"{r['index_mib']:9.0f} {r['peak_mib']:9.0f} {r['build_s']:7.0f}" if i == 0
+                         else f"{'':9s} {'':9s} {'':7s}")
+                print(f"  {name:60s} {ms * best:8.2f}{spread:>8s} {kept[0]:>8s} {kept[1]:>9s} {sizes}  "
+                      f"{fmt_recall(p['recall'])}   {r['load'] if i == 0 else ''}")
     if not all(r["peak_is_exact"] for r in results):
         print("  (peak RSS could not be reset after the data was made: peaks include making the data)")
 
@@ -174,11 +222,18 @@ if __name__ == "__main__":
     parser.add_argument("--noise", type=float, default=1.5, help="query noise (latent std), CVUSA-size setting")
     parser.add_argument("--large-noise", type=float, default=1.0, help="the same for the large gallery")
     parser.add_argument("--rank", type=int, default=64, help="intrinsic dimension of the synthetic descriptors")
-    parser.add_argument("--train-points", type=int, default=65536, help="IVF-PQ training sample (>= 39 nlist)")
+    parser.add_argument("--kinds", nargs="*", default=list(SWEPT), choices=list(SWEPT),
+                        help="approximate kinds to compare with exact search (hnsw builds for ~25 min at 1M)")
+    parser.add_argument("--train-points", type=int, default=65536, help="IVF / PQ training sample (>= 39 nlist)")
     parser.add_argument("--nlist", type=int, default=1024)
     parser.add_argument("--m", type=int, default=64)
-    parser.add_argument("--nbits", type=int, default=8)
-    parser.add_argument("--nprobe", type=int, nargs="+", default=[16, 64, 256], help="IVF lists visited per query")
+    parser.add_argument("--nbits", type=int, default=8, help="ivfpq bits per sub-code (the refine kinds use 4)")
+    parser.add_argument("--nprobe", type=int, nargs="+", default=[16, 64, 256, 512], help="IVF lists visited per query")
+    parser.add_argument("--k-factor", type=int, nargs="+", default=[4, 16], help="pq_refine shortlist multiple")
+    parser.add_argument("--hnsw-m", type=int, default=32)
+    parser.add_argument("--ef-construction", type=int, default=40)
+    parser.add_argument("--ef-search", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--repeat", type=int, default=2, help="searches per setting (best and worst printed)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--case", help=argparse.SUPPRESS)

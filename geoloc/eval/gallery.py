@@ -3,8 +3,17 @@
 Two backends:
 - ``torch``: exact, chunked over queries and references so memory stays bounded; runs on the device the
   descriptors live on (GPU when there is one).
-- ``faiss`` (the optional ``faiss-cpu`` extra): ``flat`` (exact, ``IndexFlatIP``) or ``ivfpq`` (inverted lists +
-  product quantisation, ``IndexIVFPQ``) for galleries of millions.
+- ``faiss`` (the optional ``faiss-cpu`` extra), one ``kind`` each (benchmarks/README.md measures them at 1M):
+  - ``flat``: exact (``IndexFlatIP``).
+  - ``ivfpq``: inverted lists + 8-bit product quantisation (``IndexIVFPQ``); approximate scores, least memory.
+  - ``pq_refine``: every reference scanned as a 4-bit fast-scan PQ code (``IndexPQFastScan``), then the best
+    ``k_factor * k`` re-ranked by their exact inner products (``IndexRefineFlat``; Jegou et al., "Searching in
+    one billion vectors: re-rank with source coding", ICASSP 2011).
+  - ``ivfpq_refine``: the same with inverted lists in front (``IndexIVFPQFastScan``): only ``nprobe`` of ``nlist``
+    lists are scanned.
+  - ``hnsw``: a navigable small-world graph over the full vectors (``IndexHNSWFlat``; Malkov & Yashunin, TPAMI
+    2018): ``hnsw_m`` links per node, ``ef_construction`` / ``ef_search`` candidates while building / searching.
+  The refine kinds and ``hnsw`` return exact inner products of the rows they return; ``ivfpq`` returns PQ estimates.
 
 Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b. What is added,
 trained on or searched goes through `geoloc.eval.descriptors.unit_rows`, as in `recall_at_k`: rows off unit length
@@ -24,6 +33,8 @@ __all__ = ["GalleryIndex", "import_faiss", "as_float_tensor"]
 
 _FORMAT = "geoloc.gallery/1"
 _ADD_BLOCK = 65536
+KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "hnsw")
+PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine")  # m sub-quantisers must divide dim
 
 
 def import_faiss():
@@ -52,54 +63,112 @@ def _chunk_rows(n_cols: int, budget: int = 1 << 25) -> int:
     return max(1, budget // max(n_cols, 1))
 
 
+# One builder per kind: (faiss, dim, params) -> an empty FAISS index. FAISS's Python constructors keep a reference to
+# the sub-index they wrap (coarse quantiser, PQ base), so it lives as long as the index.
+def _flat(faiss, dim, p):
+    return faiss.IndexFlatIP(dim)
+
+
+def _ivfpq(faiss, dim, p):
+    return faiss.IndexIVFPQ(faiss.IndexFlatIP(dim), dim, p["nlist"], p["m"], p["nbits"], faiss.METRIC_INNER_PRODUCT)
+
+
+def _pq_refine(faiss, dim, p):
+    # 4-bit codes: the fast-scan kernels keep the 16-entry look-up tables in SIMD registers.
+    return faiss.IndexRefineFlat(faiss.IndexPQFastScan(dim, p["m"], 4, faiss.METRIC_INNER_PRODUCT))
+
+
+def _ivfpq_refine(faiss, dim, p):
+    ivf = faiss.IndexIVFPQFastScan(faiss.IndexFlatIP(dim), dim, p["nlist"], p["m"], 4, faiss.METRIC_INNER_PRODUCT)
+    return faiss.IndexRefineFlat(ivf)
+
+
+def _hnsw(faiss, dim, p):
+    index = faiss.IndexHNSWFlat(dim, p["hnsw_m"], faiss.METRIC_INNER_PRODUCT)
+    index.hnsw.efConstruction = p["ef_construction"]  # a build knob: set before the first add
+    return index
+
+
+_BUILDERS = {"flat": _flat, "ivfpq": _ivfpq, "pq_refine": _pq_refine, "ivfpq_refine": _ivfpq_refine,
+             "hnsw": _hnsw}
+
+
+def _set_search_knobs(faiss, kind: str, index, p: dict) -> None:
+    """Set the search-time knobs from ``params``, which is what gallery.json records, so the two always agree."""
+    if kind in ("pq_refine", "ivfpq_refine"):
+        index = faiss.downcast_index(index)
+        index.k_factor = float(p["k_factor"])
+        index = faiss.downcast_index(index.base_index)
+    if kind in ("ivfpq", "ivfpq_refine"):
+        index.nprobe = p["nprobe"]
+    if kind == "hnsw":
+        faiss.downcast_index(index).hnsw.efSearch = p["ef_search"]
+
+
+def _positive_ints(values: dict, what: str) -> dict:
+    bad = [f"{key}={value!r}" for key, value in values.items()
+           if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1]
+    if bad:
+        raise ValueError(f"{what} must be integers >= 1, got {', '.join(bad)}")
+    return {key: int(value) for key, value in values.items()}
+
+
 class GalleryIndex:
     """Reference descriptors (N x dim) for top-k inner-product search.
 
     Args:
         dim: descriptor dimension.
         backend: ``"torch"`` (exact) or ``"faiss"``.
-        kind: ``"flat"`` (exact) or, with FAISS, ``"ivfpq"``.
-        nlist, m, nbits, nprobe: IVF-PQ parameters: inverted lists, sub-quantisers (must divide dim), bits per
-            code, lists visited per query.
+        kind: ``"flat"`` (exact) or, with FAISS, ``"ivfpq"``, ``"pq_refine"``, ``"ivfpq_refine"``, ``"hnsw"``
+            (module docstring).
+        nlist, nprobe: IVF kinds: inverted lists, lists visited per query.
+        m, nbits: PQ kinds: sub-quantisers (must divide dim), bits per sub-code (``ivfpq`` only; the refine kinds
+            use 4-bit fast-scan codes).
+        k_factor: refine kinds: ``k_factor * k`` PQ candidates are re-ranked exactly.
+        hnsw_m, ef_construction, ef_search: ``hnsw``: links per node, candidate list while building / searching.
         device: torch backend only: where the gallery lives (default: where the first added descriptors are).
         chunk_size: queries per block of the torch search.
     """
 
     def __init__(self, dim: int, backend: str = "torch", kind: str = "flat", nlist: int = 1024, m: int = 64,
-                 nbits: int = 8, nprobe: int = 16, device: str | torch.device | None = None,
-                 chunk_size: int = 1024):
+                 nbits: int = 8, nprobe: int = 16, k_factor: int = 16, hnsw_m: int = 32, ef_construction: int = 40,
+                 ef_search: int = 256, device: str | torch.device | None = None, chunk_size: int = 1024):
         if backend not in ("torch", "faiss"):
             raise ValueError(f"backend must be 'torch' or 'faiss', got {backend!r}")
-        if kind not in ("flat", "ivfpq") or (backend == "torch" and kind != "flat"):
-            raise ValueError(f"kind must be 'flat' (torch, faiss) or 'ivfpq' (faiss), got {kind!r} for {backend}")
-        if kind == "ivfpq" and dim % m:
-            raise ValueError(f"ivfpq needs m (sub-quantisers) to divide dim, got dim={dim}, m={m}")
+        if kind not in KINDS or (backend == "torch" and kind != "flat"):
+            raise ValueError(f"kind must be 'flat' (torch, faiss) or one of {KINDS[1:]} (faiss), got {kind!r} for "
+                             f"{backend}")
+        params = _positive_ints(dict(nlist=nlist, m=m, nbits=nbits, nprobe=nprobe, k_factor=k_factor, hnsw_m=hnsw_m,
+                                     ef_construction=ef_construction, ef_search=ef_search), "gallery index parameters")
+        if kind in PQ_KINDS and dim % m:
+            raise ValueError(f"{kind} needs m (sub-quantisers) to divide dim, got dim={dim}, m={m}")
+        if kind == "ivfpq" and nbits > 16:
+            raise ValueError(f"ivfpq needs nbits (bits per sub-code) in 1..16, got {nbits}")
         self.dim, self.backend, self.kind = int(dim), backend, kind
-        self.params = dict(nlist=int(nlist), m=int(m), nbits=int(nbits), nprobe=int(nprobe))
+        self.params = params
         self.chunk_size = int(chunk_size)
         self._device = torch.device(device) if device is not None else None
         self._descriptors: torch.Tensor | None = None  # torch backend
         if self.chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-        self._quantizer = None  # the IVF coarse quantiser must outlive the index that points to it
-        self._index = self._new_faiss_index() if backend == "faiss" else None
-
-    def _new_faiss_index(self):
-        faiss = import_faiss()
-        if self.kind == "flat":
-            return faiss.IndexFlatIP(self.dim)
-        p = self.params
-        self._quantizer = faiss.IndexFlatIP(self.dim)
-        index = faiss.IndexIVFPQ(self._quantizer, self.dim, p["nlist"], p["m"], p["nbits"],
-                                 faiss.METRIC_INNER_PRODUCT)
-        index.nprobe = p["nprobe"]
-        return index
+        self._index = None
+        if backend == "faiss":
+            faiss = import_faiss()
+            self._index = _BUILDERS[kind](faiss, self.dim, self.params)
+            _set_search_knobs(faiss, kind, self._index, self.params)
 
     def set_nprobe(self, nprobe: int) -> None:
-        """IVF-PQ: how many inverted lists a query visits (recall against speed)."""
-        self.params["nprobe"] = int(nprobe)
-        if self.kind == "ivfpq":
-            self._index.nprobe = int(nprobe)
+        """IVF kinds: how many inverted lists a query visits (recall against speed)."""
+        self.set_search_params(nprobe=nprobe)
+
+    def set_search_params(self, **knobs) -> None:
+        """Change search-time knobs (``nprobe``, ``k_factor``, ``ef_search``) of a built index."""
+        unknown = set(knobs) - {"nprobe", "k_factor", "ef_search"}
+        if unknown:
+            raise ValueError(f"search knobs are nprobe, k_factor and ef_search, got {sorted(unknown)}")
+        self.params.update(_positive_ints(knobs, "search knobs"))
+        if self.backend == "faiss":
+            _set_search_knobs(import_faiss(), self.kind, self._index, self.params)
 
     def __len__(self) -> int:
         if self.backend == "faiss":
@@ -113,8 +182,8 @@ class GalleryIndex:
         return unit_rows(x, name)
 
     def train(self, descriptors, max_points: int = 200_000, seed: int = 0) -> None:
-        """Train the IVF-PQ quantisers on (a seeded sample of at most ``max_points`` of) the descriptors."""
-        if self.backend != "faiss" or self.kind != "ivfpq":
+        """Train the IVF / PQ quantisers on (a seeded sample of at most ``max_points`` of) the descriptors."""
+        if self.backend != "faiss" or self._index.is_trained:
             return
         x = self._check(descriptors, "reference")
         if x.shape[0] > max_points:
@@ -122,7 +191,7 @@ class GalleryIndex:
         self._index.train(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
 
     def add(self, descriptors) -> "GalleryIndex":
-        """Append N x dim descriptors; their row numbers continue from ``len(self)``. Trains IVF-PQ if needed."""
+        """Append N x dim descriptors; their row numbers continue from ``len(self)``. Trains IVF / PQ if needed."""
         x = self._check(descriptors, "reference")
         if self.backend == "faiss":
             if not self._index.is_trained:
@@ -149,8 +218,15 @@ class GalleryIndex:
         q = self._check(query, "query")
         k = min(int(k), len(self))
         if self.backend == "faiss":
-            scores, idx = self._index.search(np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32), k)
-            return torch.from_numpy(scores), torch.from_numpy(idx)
+            q = np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32)
+            if self.kind == "flat":  # one call: the exact path stays as recall_at_k(backend="faiss") has it
+                scores, idx = self._index.search(q, k)
+                return torch.from_numpy(scores), torch.from_numpy(idx)
+            # Queries per call: FAISS holds k (refine kinds: k_factor * k) candidates per query of a call.
+            step = _chunk_rows(k * (self.params["k_factor"] if self.kind.endswith("_refine") else 1))
+            blocks = [self._index.search(q[s:s + step], k) for s in range(0, q.shape[0], step)]
+            return (torch.from_numpy(np.concatenate([b[0] for b in blocks])),
+                    torch.from_numpy(np.concatenate([b[1] for b in blocks])))
         return self._search_torch(q, k)
 
     def _search_torch(self, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -198,7 +274,7 @@ class GalleryIndex:
         if index.backend == "faiss":
             faiss = import_faiss()
             index._index = faiss.deserialize_index(state["faiss_index"].numpy())
-            index.set_nprobe(index.params["nprobe"])
+            _set_search_knobs(faiss, index.kind, index._index, index.params)
         elif state["descriptors"] is not None:
             index.add(state["descriptors"])
         return index

@@ -1,14 +1,17 @@
 """evaluate.py with a saved gallery: encode the references once into a GalleryIndex, answer queries from it.
 
-    python evaluate.py ckpt=.../best.pt gallery.save=DIR [gallery.backend=faiss gallery.kind=ivfpq]
+    python evaluate.py ckpt=.../best.pt gallery.save=DIR [gallery.backend=faiss gallery.kind=pq_refine]
     python evaluate.py ckpt=.../best.pt gallery.load=DIR      # only the query branch runs
 
 DIR holds `gallery.pt` (GalleryIndex.save), `gallery.json` (what it was built from, and the reference spread) and
 the places (`references.jsonl`, `queries.jsonl`: geoloc/tasks/crossview/places.py), which localize.py reads.
 Gallery row j is the split's reference j, so the queries must come from the split the gallery was built on.
-With `kind=flat` the recall equals the exact evaluation (AP, for labelled splits, is left to it). Both ways run the checks of the validation path
-(geoloc.eval.descriptors): NaN/inf descriptors raise before anything is saved, and a collapsed gallery reports
-recall 0 with a warning (the spread of a saved gallery is measured when it is built; a collapsed one is not saved).
+With `kind=flat` the recall equals the exact evaluation (AP, for labelled splits, is left to it). The default
+`kind=auto` builds `flat` below `auto_exact_below` (100,000) references and `pq_refine` (FAISS; 99.9% of the exact
+R@1 at 2 ms per query on 1M references, benchmarks/README.md) from there on; gallery.json records the kind built.
+Both ways run the checks of the validation path (geoloc.eval.descriptors): NaN/inf descriptors raise before anything
+is saved, and a collapsed gallery reports recall 0 with a warning (the spread of a saved gallery is measured when it
+is built; a collapsed one is not saved).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from geoloc.data.geo import distance_m
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine import distributed as dist
 from geoloc.eval.descriptors import check_descriptors, guarded_recall
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.gallery import KINDS, PQ_KINDS, GalleryIndex, import_faiss
 from geoloc.eval.geo_error import metre_summary
 from geoloc.eval.recall import one_percent_k
 from geoloc.eval.retrieval_metrics import collapsed_split_metrics
@@ -34,30 +37,64 @@ from geoloc.tasks.crossview.encode import encode, encode_images
 from geoloc.tasks.crossview.places import split_positions, write_places
 
 
+AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (benchmarks/README.md, 1M references)
+
+
 @dataclass
 class GalleryConfig:
     save: str | None = None  # DIR: build the gallery from the split's references and save it there
     load: str | None = None  # DIR: answer the queries from this saved gallery
     backend: str = "torch"  # torch (exact, chunked) | faiss
-    kind: str = "flat"  # flat (exact) | ivfpq (faiss only)
-    nlist: int = 1024  # IVF-PQ inverted lists (capped at N / 39, FAISS's minimum training points per list)
-    m: int = 64  # PQ sub-quantisers; must divide the descriptor dim
-    nbits: int = 8
-    nprobe: int = 16
+    kind: str = "auto"  # auto | flat (exact) | ivfpq | pq_refine | ivfpq_refine | hnsw (the last four: faiss)
+    auto_exact_below: int = 100_000  # kind=auto: flat below this many references, AUTO_APPROXIMATE (faiss) above
+    nlist: int = 1024  # IVF kinds: inverted lists (capped at N / 39, FAISS's minimum training points per list)
+    m: int = 64  # PQ kinds: sub-quantisers; must divide the descriptor dim
+    nbits: int = 8  # ivfpq: bits per sub-code (the refine kinds use 4)
+    nprobe: int = 16  # IVF kinds: lists visited per query
+    k_factor: int = 16  # refine kinds: k_factor * k PQ candidates re-ranked exactly
+    hnsw_m: int = 32  # hnsw: links per node
+    ef_construction: int = 40  # hnsw: candidate list while building
+    ef_search: int = 256  # hnsw: candidate list while searching
 
     def __post_init__(self):
         if self.save and self.load:
             raise ValueError("give gallery.save=DIR (build) or gallery.load=DIR (query), not both")
         if self.backend not in ("torch", "faiss"):
             raise ValueError(f"gallery.backend must be 'torch' or 'faiss', got {self.backend!r}")
-        if self.kind not in ("flat", "ivfpq") or (self.kind == "ivfpq" and self.backend != "faiss"):
-            raise ValueError(f"gallery.kind must be 'flat' or (with backend=faiss) 'ivfpq', got {self.kind!r}")
+        if self.kind not in ("auto", *KINDS):
+            raise ValueError(f"gallery.kind must be one of {('auto', *KINDS)}, got {self.kind!r}")
+        if self.kind not in ("auto", "flat") and self.backend != "faiss":
+            raise ValueError(f"gallery.kind={self.kind} needs gallery.backend=faiss (torch has only kind=flat)")
+        knobs = ("auto_exact_below", "nlist", "m", "nbits", "nprobe", "k_factor", "hnsw_m", "ef_construction",
+                 "ef_search")
+        bad = [f"gallery.{key}={getattr(self, key)}" for key in knobs if getattr(self, key) < 1]
+        if bad:
+            raise ValueError(f"{', '.join(bad)}: must be >= 1")
+
+    def resolved(self, num_references: int) -> tuple[str, str]:
+        """(backend, kind) to build for a gallery of ``num_references``: kind=auto picks flat or AUTO_APPROXIMATE."""
+        if self.kind != "auto":
+            return self.backend, self.kind
+        if num_references < self.auto_exact_below:
+            return self.backend, "flat"
+        try:
+            import_faiss()
+        except ImportError as e:
+            raise ConfigError(f"gallery.kind=auto builds {AUTO_APPROXIMATE} (faiss) for {num_references:,} references "
+                              f"(>= gallery.auto_exact_below={self.auto_exact_below:,}), but faiss is not installed: "
+                              "pip install faiss-cpu, or set gallery.kind=flat for exact search") from e
+        return "faiss", AUTO_APPROXIMATE
 
 
 def build_index(reference: torch.Tensor, cfg: GalleryConfig) -> GalleryIndex:
+    backend, kind = cfg.resolved(reference.shape[0])
+    if kind in PQ_KINDS and reference.shape[1] % cfg.m:
+        raise ConfigError(f"gallery.kind={cfg.kind} builds {kind}, whose gallery.m={cfg.m} sub-quantisers must divide "
+                          f"the descriptor dim {reference.shape[1]}: set gallery.m to a divisor of it")
     nlist = max(1, min(cfg.nlist, reference.shape[0] // 39))
-    index = GalleryIndex(reference.shape[1], backend=cfg.backend, kind=cfg.kind, nlist=nlist, m=cfg.m,
-                         nbits=cfg.nbits, nprobe=cfg.nprobe)
+    index = GalleryIndex(reference.shape[1], backend=backend, kind=kind, nlist=nlist, m=cfg.m, nbits=cfg.nbits,
+                         nprobe=cfg.nprobe, k_factor=cfg.k_factor, hnsw_m=cfg.hnsw_m,
+                         ef_construction=cfg.ef_construction, ef_search=cfg.ef_search)
     return index.add(reference)
 
 

@@ -19,7 +19,7 @@ import torch
 
 from geoloc.config import ConfigError
 
-__all__ = ["check_fov", "circular_error_deg", "crop_view", "candidate_headings", "north_window",
+__all__ = ["check_fov", "circular_error_deg", "crop_view", "candidate_headings", "eval_heading", "north_window",
            "query_candidates", "view_canvas"]
 
 
@@ -110,3 +110,12 @@ def query_candidates(street: np.ndarray, cfg, view: str, fov_deg: float,
     fov = check_fov(fov_deg)
     tensors = [to_tensor(align_query(view_canvas(street, fov, h), cfg, view)) for h in headings]
     return torch.stack(tensors), headings
+
+
+EVAL_HEADING_SEED = 12  # issue 12: the evaluation headings are one fixed draw, the same for every checkpoint
+
+
+def eval_heading(index: int) -> float:
+    """The true heading of evaluation query `index` under dataset.random_heading: U[0, 360) degrees drawn from
+    numpy's default_rng((EVAL_HEADING_SEED, index)), so every run and checkpoint meets the same headings."""
+    return float(np.random.default_rng((EVAL_HEADING_SEED, int(index))).uniform(0.0, 360.0))

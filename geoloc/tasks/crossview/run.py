@@ -19,7 +19,9 @@ from geoloc.tasks.crossview.config import is_old_layout, upgraded_config, upgrad
 from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.task import CrossViewTask
 
-# transform settings that must match what the network was trained on; evaluate always takes them from the ckpt
+# transform settings that must match what the network was trained on; evaluate always takes them from the ckpt.
+# The view's field of view and heading (fov, random_heading, heading_steps) are not among them: they are the test
+# condition, and evaluate.py may set them (conf/evaluate.yaml).
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
 # what an init_from= run does not take from its source: the loss's state (the GMS queue holds the source data's
 # places and descriptors; a learned temperature starts again)
@@ -60,7 +62,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 
             state = ckpt_io.load(run_dir / "best.pt")
             ckpt_io.load_task_state(task, state, run_dir / "best.pt")
-            crossview_figures(task, val_set, run_dir, trainer.device,
+            crossview_figures(task, data.known_heading(val_set), run_dir, trainer.device,
                               data_cfg.val_batch_size or data_cfg.batch_size)
     return best
 
@@ -85,6 +87,9 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
         if eval_data.pairs is None:
             raise ConfigError(f"gallery.save / gallery.load score one-to-one splits (query i matches gallery row i); "
                               f"{eval_data.split.name} is not one. Evaluate it without gallery.*")
+        if data_cfg.random_heading:
+            raise ConfigError("gallery.save / gallery.load encode each query once, at its known heading; with "
+                              "dataset.random_heading=true (K candidate headings per query) evaluate without gallery.*")
         meta = {"ckpt": str(cfg.ckpt), "dataset": f"{data_cfg.name} {data_cfg.split} {data_cfg.root}"}
         metrics = gallery.evaluate(task, trainer.engine, eval_data.pairs, batch_size, gallery_cfg, meta)
     else:
@@ -125,6 +130,6 @@ def print_table(metrics: dict, title: str) -> None:
 
 
 def _fmt(key: str, value: float) -> str:
-    if key.startswith("R@") or key in ("hit_rate", "AP") or key.startswith("within_"):
+    if key.startswith("R@") or key in ("hit_rate", "AP") or key.startswith(("within_", "heading_within_")):
         return f"{value * 100:.2f}"
     return f"{value:.4g}"

@@ -115,6 +115,9 @@ def test_training_sees_the_window_at_north_or_at_a_random_bearing(tiny_cvusa):
     known = crossview.build(tiny_cfg(tiny_cvusa, fov=90), "train", train=True)
     assert torch.equal(known[(3, 0)]["query"], north)
     assert torch.equal(crossview.build(tiny_cfg(tiny_cvusa, fov=90), "train", train=False)[3]["query"], north)
+    queries = crossview.ViewImages([tiny_cvusa / "streetview/panos/0000004.jpg"], "panorama",
+                                   tiny_cfg(tiny_cvusa, fov=90))
+    assert torch.equal(queries[0]["image"], north)  # galleries apart from the queries (VIGOR) see them at north too
     random = crossview.build(tiny_cfg(tiny_cvusa, fov=90, random_heading=True), "train", train=True)
     heading = float(np.random.default_rng((0, 0, 3)).uniform(0, 360))  # the item's augmentation RNG, first draw
     assert torch.equal(random[(3, 0)]["query"], to_tensor(align_query(north_window(pano, 90, heading),

@@ -11,7 +11,7 @@ aligned: geoloc/data/heading.py), giving q_ik. With references r_j (N×D):
 
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 import torch

@@ -9,6 +9,7 @@ head=gap loss=infonce optim=adamw with a hard-sample sampler (conf/experiment/sa
 
 from __future__ import annotations
 
+import torch
 from omegaconf import DictConfig
 
 from geoloc import registry
@@ -96,7 +97,10 @@ class CrossViewTask(Task):
     def validation_step(self, batch, loader: str | None = None):
         if loader is None and "heading" in batch:  # unknown heading: B×K×3×H×W candidate inputs per query
             candidates = batch["query"]
-            query = self.model.query(candidates.flatten(0, 1)).unflatten(0, candidates.shape[:2])
+            # B images at a time, as without the search: K·B at once would hold K times the activations
+            flat = candidates.flatten(0, 1)
+            query = torch.cat([self.model.query(part) for part in flat.split(candidates.shape[0])])
+            query = query.unflatten(0, candidates.shape[:2])
             return {"query": query, "reference": self.model.reference(batch["reference"]), "index": batch["index"],
                     "heading": batch["heading"]}
         if loader is None:

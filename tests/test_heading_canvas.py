@@ -8,8 +8,7 @@ import torch
 
 from geoloc.config import ConfigError
 from geoloc.data.crossview import CrossViewDataConfig, align_query, to_tensor
-from geoloc.data.heading import (candidate_headings, circular_error_deg, crop_view, north_window, query_candidates,
-                                 view_canvas)
+from geoloc.data.heading import circular_error_deg, crop_view, north_window, query_candidates, view_canvas
 
 
 def bearing_panorama(width: int, height: int = 3) -> np.ndarray:

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 
 from geoloc import run
 from geoloc.config import ConfigError
-from geoloc.data.crossview import CrossViewPairs, align_query, shared_config, to_tensor
+from geoloc.data.crossview import CrossViewPairs, align_query, to_tensor
 from geoloc.data.heading import query_candidates, view_canvas
 from geoloc.data.positions import positions_text, read_positions
 from geoloc.data.readers import cvact, cvusa

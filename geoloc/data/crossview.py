@@ -20,6 +20,7 @@ from torch.utils.data import Dataset
 from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.data import polar
+from geoloc.data.heading import check_fov, crop_view, eval_heading, north_window, query_candidates
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.data.validate import check_files, require_complete
 from geoloc.engine.sampling import item_rng, split_key
@@ -49,6 +50,9 @@ class CrossViewDataConfig:
     rotation_deg: float = 0.0  # train: rotate the aerial-like query by U(-r, r) degrees (panorama column roll)
     color_jitter: float = 0.0  # train: brightness/contrast/saturation jitter strength, 0 = off
     joint_flip_rotate: bool = False  # train: flip / rotate by k*90° the aerial and the panorama consistently
+    fov: float = 360.0  # the street camera's field of view in degrees, (0, 360]; the rest of the canvas is 0
+    random_heading: bool = False  # train: the view at a random bearing; eval: unknown heading, searched
+    heading_steps: int = 36  # eval with random_heading: candidate headings 360·k/K per query (docs/heading.md)
     check_files: str = "decode"  # decode | exists | off
     max_train: int = 0  # 0 = all; for quick runs (one-to-one splits keep their pairs; others cut the queries)
     max_val: int = 0
@@ -60,6 +64,15 @@ class CrossViewDataConfig:
             raise ValueError(f"dataset.batch_size must be >= 1, got {self.batch_size}")
         if self.aerial_size < 16 or len(self.pano_size) != 2 or min(self.pano_size) < 8:
             raise ValueError(f"image sizes too small: aerial_size={self.aerial_size}, pano_size={self.pano_size}")
+        check_fov(self.fov, "dataset.fov")
+        if self.heading_steps < 1:
+            raise ValueError(f"dataset.heading_steps must be >= 1 (candidate headings per query), got "
+                             f"{self.heading_steps}")
+
+    @property
+    def limited_view(self) -> bool:
+        """Whether query views differ from the north-aligned full panorama (a narrower fov or a random heading)."""
+        return self.fov < 360.0 or self.random_heading
 
 
 SHARED_KEYS = tuple(f.name for f in fields(CrossViewDataConfig))
@@ -91,10 +104,11 @@ def read_split(section, split: str) -> RetrievalSplit:
         raise TypeError(f"dataset {cfg.name!r}: its reader returned {type(out).__name__}, not a RetrievalSplit "
                         "(docs/extending.md)")
     if out.query_view in ("image", "aerial") and (cfg.alignment != "none" or cfg.joint_flip_rotate
-                                                   or cfg.rotation_deg > 0):
-        raise ConfigError(f"dataset {cfg.name!r} has photo queries (e.g. drone views): polar alignment and the joint "
-                          "flip/rotate and rotation of panoramas do not apply; set dataset.alignment=none "
-                          "dataset.joint_flip_rotate=false dataset.rotation_deg=0")
+                                                   or cfg.rotation_deg > 0 or cfg.limited_view):
+        raise ConfigError(f"dataset {cfg.name!r} has photo queries (e.g. drone views): polar alignment, the joint "
+                          "flip/rotate and rotation of panoramas and the panorama field of view / heading do not "
+                          "apply; set dataset.alignment=none dataset.joint_flip_rotate=false dataset.rotation_deg=0 "
+                          "dataset.fov=360 dataset.random_heading=false")
     limit = cfg.max_train if split == "train" else cfg.max_val
     if limit and limit < out.num_queries:
         out = limited(out, limit)
@@ -135,12 +149,18 @@ class CrossViewPairs(Dataset):
     Item: {"query": 3×Hq×Wq float (street, aligned), "reference": 3×Hr×Wr float (aerial), "index": i (position in
     the split), "label": the positive reference's index (the place: queries of one place share it)}. Keys may be
     ints or (index, epoch) pairs. `augment_seed` (the run's top-level `seed`) seeds the train-time augmentation
-    per (seed, epoch, index)."""
+    per (seed, epoch, index).
 
-    def __init__(self, split: RetrievalSplit, cfg: CrossViewDataConfig, train: bool, augment_seed: int = 0):
+    `heading_search` (evaluation with dataset.random_heading): query i is seen at heading eval_heading(i) with
+    dataset.fov, and item["query"] is its K×3×H×W candidate inputs (heading 360·k/K each, geoloc/data/heading.py),
+    item["heading"] the true heading in degrees."""
+
+    def __init__(self, split: RetrievalSplit, cfg: CrossViewDataConfig, train: bool, augment_seed: int = 0,
+                 heading_search: bool = False):
         if split.aerial_queries:
             raise ValueError(f"{split.name}: pairs need ground-side queries; this split's queries are aerial images")
         self.split, self.cfg, self.train = split, cfg, train
+        self.heading_search = heading_search
         self.augment_seed = augment_seed
         self.labels = split.labels()
         self._neighbours = None
@@ -165,6 +185,13 @@ class CrossViewPairs(Dataset):
         label = int(self.labels[index])
         street = load_view(self.split.queries[index], self.split.query_view)
         aerial = read_rgb(self.split.references[label])
+        if self.heading_search:
+            heading = eval_heading(index)
+            view = crop_view(street, self.cfg.fov, heading)
+            candidates, _ = query_candidates(view, self.cfg, self.split.query_view, self.cfg.fov,
+                                             self.cfg.heading_steps)
+            return {"query": candidates, "reference": to_tensor(align_reference(aerial, self.cfg)), "index": index,
+                    "label": label, "heading": heading}
         rng = item_rng(self.augment_seed, key) if self.train else None
         query, reference = align(street, aerial, self.cfg, rng, self.split.query_view)
         return {"query": to_tensor(query, rng, self.cfg.color_jitter),
@@ -187,7 +214,10 @@ class ViewImages(Dataset):
         if self.view == "aerial":
             image = align_reference(read_rgb(self.paths[index]), self.cfg)
         else:
-            image = align_query(load_view(self.paths[index], self.view), self.cfg, self.view)
+            street = load_view(self.paths[index], self.view)
+            if self.view != "image":
+                street = north_window(street, self.cfg.fov, 0.0)
+            image = align_query(street, self.cfg, self.view)
         return {"image": to_tensor(image), "index": index}
 
 
@@ -208,6 +238,9 @@ def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
         # rotating the aerial-like image by θ is a circular shift of the panorama by θ/360 of its width
         shift = int(round(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg) / 360.0 * street.shape[1]))
         street = np.roll(street, shift, axis=1)
+    if cfg.fov < 360.0:  # the camera's window on the north-aligned panorama; fov 360 draws nothing (as before)
+        heading = float(rng.uniform(0.0, 360.0)) if rng is not None and cfg.random_heading else 0.0
+        street = north_window(street, cfg.fov, heading)
     return align_query(street, cfg, view), align_reference(aerial, cfg)
 
 
@@ -277,6 +310,13 @@ class EvalData:
         return self.split.num_queries
 
 
+def known_heading(data: EvalData) -> EvalData:
+    """`data` with its pairs seen at the known heading (north), one query image each: what the figures show."""
+    if data.pairs is None or not data.pairs.heading_search:
+        return data
+    return replace(data, pairs=CrossViewPairs(data.split, data.pairs.cfg, train=False))
+
+
 def build(section, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
     """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too."""
     return CrossViewPairs(read_split(section, split), shared_config(section), train=train, augment_seed=augment_seed)
@@ -286,7 +326,11 @@ def build_eval(section, split: str) -> EvalData:
     cfg = shared_config(section)
     data = read_split(section, split)
     if data.one_to_one:
-        return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False))
+        return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading))
+    if cfg.random_heading:
+        raise ConfigError(f"dataset {cfg.name!r}: evaluation with an unknown heading (dataset.random_heading=true) "
+                          "scores one-to-one splits (CVUSA, CVACT, synthetic) only; evaluate this split with "
+                          "dataset.random_heading=false (a known heading, north at the centre)")
     reference_view = "image" if data.aerial_queries else "aerial"
     return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg),
                     references=ViewImages(data.references, reference_view, cfg))

@@ -19,7 +19,7 @@ import torch
 
 from geoloc.config import ConfigError
 
-__all__ = ["check_fov", "circular_error_deg", "crop_view", "candidate_headings", "north_window",
+__all__ = ["candidate_headings", "check_fov", "circular_error_deg", "crop_view", "eval_heading", "north_window",
            "query_candidates", "view_canvas"]
 
 
@@ -45,8 +45,8 @@ def _view_columns(canvas_width: int, view_width: int, fov_deg: float, heading_de
 
 
 def view_canvas(street: np.ndarray, fov_deg: float, heading_deg: float) -> np.ndarray:
-    """street: H×W'×C covering fov_deg of bearing centred on heading_deg → H×W×C 360° canvas, W = round(W'·360/f),
-    the view at its bearings and zeros elsewhere (fov 360: a circular roll of the view)."""
+    """street: H×W'×C covering fov_deg of bearing centred on heading_deg → H×W×C 360° canvas,
+    W = round(W'·360/f), the view at its bearings and zeros elsewhere (fov 360: a circular roll of the view)."""
     street = _check_image(street, "street view")
     fov = check_fov(fov_deg)
     view_width = street.shape[1]
@@ -110,3 +110,12 @@ def query_candidates(street: np.ndarray, cfg, view: str, fov_deg: float,
     fov = check_fov(fov_deg)
     tensors = [to_tensor(align_query(view_canvas(street, fov, h), cfg, view)) for h in headings]
     return torch.stack(tensors), headings
+
+
+EVAL_HEADING_SEED = 12  # issue 12: the evaluation headings are one fixed draw, the same for every checkpoint
+
+
+def eval_heading(index: int) -> float:
+    """The true heading of evaluation query `index` under dataset.random_heading: U[0, 360) degrees drawn from
+    numpy's default_rng((EVAL_HEADING_SEED, index)), so every run and checkpoint meets the same headings."""
+    return float(np.random.default_rng((EVAL_HEADING_SEED, int(index))).uniform(0.0, 360.0))

@@ -3,7 +3,8 @@ its network weights.
 
 - `ckpt=RUN/last.pt` continues that run: model, optimizer, scheduler, scaler, GMS queue, epoch, best, RNG states.
   It resumes only with the config stored in the checkpoint; a key outside `RESUME_MAY_CHANGE` that differs fails
-  with the list of differences, so the saved record of what ran stays true.
+  with the list of differences, so the saved record of what ran stays true (a key added since, `ADDED_KEYS`, may
+  be requested at the value that computes what ran before it existed).
 - `init_from=PATH` is a new run (fine-tuning, new data, new lr): it loads the network weights only and starts at
   epoch 0 with a fresh optimizer, scheduler, best metric and GMS queue (the queue's descriptors and place ids
   belong to the source run's data). Where the weights came from goes to `init_from.json` and into its checkpoints.
@@ -32,6 +33,12 @@ RESUME_MAY_CHANGE = (
     "dataset.workers",  # processes that render the synthetic set: the same files either way
 )
 
+#: Keys added to the config after checkpoints were written, each with the value that computes what ran before it
+#: existed: a checkpoint without the key resumes when the request holds exactly that value.
+ADDED_KEYS = {
+    "dataset.fov": 360.0, "dataset.random_heading": False, "dataset.heading_steps": 36,  # issue 12 (heading)
+}
+
 
 def flat(tree: Any, prefix: str = "") -> dict[str, Any]:
     """{"a": {"b": 1}} -> {"a.b": 1}; lists stay whole values."""
@@ -51,6 +58,9 @@ def config_differences(stored: dict, requested: dict) -> list[str]:
     """'key: stored -> requested' for every key outside RESUME_MAY_CHANGE whose value differs."""
     old, new = flat(stored), flat(requested)
     absent = "(absent)"
+    for key, value in ADDED_KEYS.items():  # a checkpoint from before the key: as if stored at its old value
+        if key not in old and key in new and new[key] == value:
+            old[key] = value
     return [f"{key}: {old.get(key, absent)} → {new.get(key, absent)}" for key in sorted(old.keys() | new.keys())
             if not may_change(key) and old.get(key, absent) != new.get(key, absent)]
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import checked, to_yaml
+from geoloc.config import ConfigError, checked, to_yaml
 from geoloc.data import crossview as data
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
@@ -19,7 +19,9 @@ from geoloc.tasks.crossview.config import is_old_layout, upgraded_config, upgrad
 from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.task import CrossViewTask
 
-# transform settings that must match what the network was trained on; evaluate always takes them from the ckpt
+# transform settings that must match what the network was trained on; evaluate always takes them from the ckpt.
+# The view's field of view and heading (fov, random_heading, heading_steps) are not among them: they are the test
+# condition, and evaluate.py may set them (conf/evaluate.yaml).
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
 # what an init_from= run does not take from its source: the loss's state (the GMS queue holds the source data's
 # places and descriptors; a learned temperature starts again)
@@ -60,7 +62,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
 
             state = ckpt_io.load(run_dir / "best.pt")
             ckpt_io.load_task_state(task, state, run_dir / "best.pt")
-            crossview_figures(task, val_set, run_dir, trainer.device,
+            crossview_figures(task, data.known_heading(val_set), run_dir, trainer.device,
                               data_cfg.val_batch_size or data_cfg.batch_size)
     return best
 
@@ -77,6 +79,9 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     batch_size = data_cfg.val_batch_size or data_cfg.batch_size
     gallery_cfg = checked(cfg.get("gallery") or {}, GalleryConfig, "gallery")
     if gallery_cfg.save or gallery_cfg.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
+        if data_cfg.random_heading:
+            raise ConfigError("gallery.save / gallery.load encode each query once, at its known heading; with "
+                              "dataset.random_heading=true (K candidate headings per query) evaluate without gallery.*")
         meta = {"ckpt": str(Path(cfg.ckpt).resolve()), "dataset": f"{data_cfg.name} {data_cfg.split} {data_cfg.root}",
                 "model_fingerprint": ckpt_io.weights_fingerprint(task.model)}
         metrics = gallery.evaluate(task, trainer.engine, eval_data, batch_size, gallery_cfg, meta)
@@ -131,6 +136,6 @@ def print_table(metrics: dict, title: str) -> None:
 
 
 def _fmt(key: str, value: float) -> str:
-    if key.startswith("R@") or key in ("hit_rate", "AP") or key.startswith("within_"):
+    if key.startswith("R@") or key in ("hit_rate", "AP") or key.startswith(("within_", "heading_within_")):
         return f"{value * 100:.2f}"
     return f"{value:.4g}"

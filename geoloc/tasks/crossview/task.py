@@ -9,6 +9,7 @@ head=gap loss=infonce optim=adamw with a hard-sample sampler (conf/experiment/sa
 
 from __future__ import annotations
 
+import torch
 from omegaconf import DictConfig
 
 from geoloc import registry
@@ -16,6 +17,7 @@ from geoloc.engine import Task
 from geoloc.engine import distributed as dist
 from geoloc.eval import recall_at_k
 from geoloc.eval.descriptors import check_descriptors, guarded_recall
+from geoloc.eval.heading import collapsed_heading_metrics, heading_metrics
 from geoloc.eval.retrieval_metrics import collapsed_split_metrics, split_metrics
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
@@ -93,6 +95,14 @@ class CrossViewTask(Task):
                 "reference": engine.loader(data.references, batch_size, train=False)}
 
     def validation_step(self, batch, loader: str | None = None):
+        if loader is None and "heading" in batch:  # unknown heading: B×K×3×H×W candidate inputs per query
+            candidates = batch["query"]
+            # B images at a time, as without the search: K·B at once would hold K times the activations
+            flat = candidates.flatten(0, 1)
+            query = torch.cat([self.model.query(part) for part in flat.split(candidates.shape[0])])
+            query = query.unflatten(0, candidates.shape[:2])
+            return {"query": query, "reference": self.model.reference(batch["reference"]), "index": batch["index"],
+                    "heading": batch["heading"]}
         if loader is None:
             query, reference = self.model(batch["query"], batch["reference"])
             return {"query": query, "reference": reference, "index": batch["index"]}
@@ -107,6 +117,10 @@ class CrossViewTask(Task):
             query, reference = outputs["query"], outputs["reference"]
         # Non-finite descriptors raise; a collapse (ties count in the query's favour, so one shared descriptor would
         # score R@1 = 100%) reports recall 0. The same checks guard the saved-gallery path (gallery.py).
+        if query.ndim == 3:  # Q×K×D: each query at K candidate headings (geoloc/eval/heading.py)
+            spread = check_descriptors(query.flatten(0, 1), reference)
+            return guarded_recall(lambda: heading_metrics(query, reference, outputs["heading"]), spread,
+                                  collapsed=collapsed_heading_metrics())
         spread = check_descriptors(query, reference)
         if self.split is None or self.split.one_to_one:
             return guarded_recall(lambda: recall_at_k(query, reference), spread)

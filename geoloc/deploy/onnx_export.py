@@ -19,12 +19,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from geoloc.config import ConfigError
 from geoloc.data import crossview as data
 from geoloc.deploy import input_spec
-from geoloc.engine import checkpoint as ckpt_io
 
 FORMATS = ("onnx",)
 FILES = {"query": "query.onnx", "reference": "reference.onnx"}
@@ -47,14 +46,9 @@ def export(cfg: DictConfig) -> dict:
     out = Path(cfg.out) if cfg.get("out") else default_out(ckpt)
     if not cfg.get("overwrite", False):
         refuse_existing(out)
-    state = ckpt_io.load(ckpt)
-    task_name = OmegaConf.select(OmegaConf.create(state.get("config") or "{}"), "task.name") or "crossview"
-    if task_name != "crossview":
-        raise ConfigError(f"ckpt={ckpt} is a task={task_name} checkpoint; export.py exports the encoders of "
-                          "cross-view checkpoints (task=crossview) only")
-    from geoloc.tasks.crossview.run import restored_task
+    from geoloc.tasks.crossview.run import load_checkpoint
 
-    task, stored = restored_task(state, ckpt)
+    task, stored, state = load_checkpoint(ckpt, "export.py")
     data_cfg = data.shared_config(stored.dataset)
     view = input_spec.query_view_of(data_cfg.name, cfg.get("query_view"))
     # the exporter's graph passes log each step at INFO, which Hydra's job logging would print

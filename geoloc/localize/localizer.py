@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from geoloc.config import ConfigError
 from geoloc.data.crossview import read_rgb, shared_config
@@ -45,14 +44,9 @@ class Localizer:
 
     @classmethod
     def load(cls, ckpt, gallery, device: str = "auto", heading_steps: int = 36) -> "Localizer":
-        from geoloc.tasks.crossview.run import restored_task
+        from geoloc.tasks.crossview.run import load_checkpoint
 
-        state = checkpoint.load(ckpt)
-        task_name = OmegaConf.select(OmegaConf.create(state.get("config") or "{}"), "task.name") or "crossview"
-        if task_name != "crossview":
-            raise ConfigError(f"{ckpt} is a {task_name} checkpoint; localize needs a cross-view one (python "
-                              "train.py task=crossview)")
-        task, stored = restored_task(state, ckpt)
+        task, stored, _ = load_checkpoint(ckpt, "localize")
         folder = Path(gallery)
         if not (folder / "gallery.json").is_file():
             raise FileNotFoundError(f"{folder} holds no saved gallery (gallery.json). Build one from the split "

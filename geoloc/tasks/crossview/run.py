@@ -98,6 +98,18 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     return metrics
 
 
+def load_checkpoint(ckpt, use: str) -> tuple[CrossViewTask, DictConfig, dict]:
+    """(task with the weights loaded, its config, the checkpoint dict) of a cross-view checkpoint file; another
+    task's checkpoint is refused, naming `use` (what wanted it: export.py, localize)."""
+    state = ckpt_io.load(ckpt)
+    task_name = OmegaConf.select(OmegaConf.create(state.get("config") or "{}"), "task.name") or "crossview"
+    if task_name != "crossview":
+        raise ConfigError(f"ckpt={ckpt} is a task={task_name} checkpoint; {use} takes cross-view checkpoints "
+                          "(task=crossview) only")
+    task, stored = restored_task(state, ckpt)
+    return task, stored, state
+
+
 def restored_task(state: dict, ckpt) -> tuple[CrossViewTask, DictConfig]:
     """The task a checkpoint's config describes, with the checkpoint's weights, on the CPU, and that config (older
     layouts upgraded: geoloc/tasks/crossview/config.py). `ckpt` names the file in errors. Used by evaluate, export

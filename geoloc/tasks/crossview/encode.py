@@ -9,43 +9,38 @@ import torch
 from geoloc.engine import distributed as dist
 
 
-@torch.no_grad()
 def encode(task, engine, loader, keys=("query", "reference")) -> dict:
     """{key: N x dim float32 CPU descriptors} of the whole dataset of `loader` (an unshuffled engine.loader) in
     dataset order.
 
     keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
     """
+    return _encoded(task, engine, loader, lambda batch: {k: getattr(task.model, k)(batch[k]) for k in keys})
+
+
+def encode_images(task, engine, loader, encoder) -> torch.Tensor:
+    """N x dim float32 CPU descriptors of a ViewImages loader's images (batch["image"]) through `encoder` (a branch
+    of `task.model`: `task.model.encoders(...)` picks it), in dataset order."""
+    return _encoded(task, engine, loader, lambda batch: {"image": encoder(batch["image"])})["image"]
+
+
+@torch.no_grad()
+def _encoded(task, engine, loader, describe) -> dict:
+    """{key: descriptors} of `describe(batch)` over the loader, in eval mode, gathered over ranks, in dataset
+    order (by batch["index"]), as float32 on the CPU."""
     was_training = task.training
     task.eval()
-    parts: dict[str, list[torch.Tensor]] = {k: [] for k in (*keys, "index")}
+    parts: dict[str, list[torch.Tensor]] = {"index": []}
     for batch in loader:
         batch = engine.to_device(batch)
         with engine.autocast():
-            for key in keys:
-                parts[key].append(getattr(task.model, key)(batch[key]).float())
+            for key, value in describe(batch).items():
+                parts.setdefault(key, []).append(value.float())
         parts["index"].append(batch["index"])
     out = {k: dist.all_gather_variable(torch.cat(v)) for k, v in parts.items()}
     order = torch.argsort(out.pop("index"))
     task.train(was_training)
     return {k: v[order].cpu() for k, v in out.items()}
-
-
-@torch.no_grad()
-def encode_images(task, engine, loader, encoder) -> torch.Tensor:
-    """N x dim float32 CPU descriptors of a ViewImages loader's images (batch["image"]) through `encoder` (a branch
-    of `task.model`: `task.model.encoders(...)` picks it), in dataset order."""
-    was_training = task.training
-    task.eval()
-    descriptors, order = [], []
-    for batch in loader:
-        batch = engine.to_device(batch)
-        with engine.autocast():
-            descriptors.append(encoder(batch["image"]).float())
-        order.append(batch["index"])
-    out, index = dist.all_gather_variable(torch.cat(descriptors)), dist.all_gather_variable(torch.cat(order))
-    task.train(was_training)
-    return out[torch.argsort(index)].cpu()
 
 
 def plain_pairs_loader(engine, pairs, batch_size: int):

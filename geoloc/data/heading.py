@@ -20,7 +20,7 @@ import torch
 from geoloc.config import ConfigError
 
 __all__ = ["candidate_headings", "check_fov", "circular_error_deg", "crop_view", "eval_heading", "north_window",
-           "query_candidates", "view_canvas"]
+           "query_candidates", "query_inputs", "view_canvas"]
 
 
 def check_fov(fov_deg: float, where: str = "fov_deg") -> float:
@@ -98,18 +98,22 @@ def query_candidates(street: np.ndarray, cfg, view: str, fov_deg: float,
                      steps: int) -> tuple[torch.Tensor, np.ndarray]:
     """One street view of unknown heading → (K×3×H×W query-branch inputs, (K,) candidate headings in degrees).
 
-    Candidate k places the view on the 360° canvas at heading 360·k/K, aligns it as the dataset config `cfg`
-    (a CrossViewDataConfig) says and normalises it like `to_tensor`. `view` is the split's query view
-    ("panorama", or "sphere" already cut to its horizon band by load_view)."""
+    Candidate k is the view at heading 360·k/K (`query_inputs`)."""
+    headings = candidate_headings(steps)
+    return query_inputs(street, cfg, view, fov_deg, headings), headings
+
+
+def query_inputs(street: np.ndarray, cfg, view: str, fov_deg: float, headings) -> torch.Tensor:
+    """len(headings)×3×H×W query-branch inputs: the view placed on the 360° canvas at each heading (degrees),
+    aligned as the dataset config `cfg` (a CrossViewDataConfig) says and normalised like `to_tensor`. `view` is
+    the split's query view ("panorama", or "sphere" already cut to its horizon band by load_view)."""
     from geoloc.data.crossview import align_query, to_tensor  # crossview imports this module
 
     if view not in ("panorama", "sphere"):
         raise ConfigError(f"a heading search needs panorama-like queries (view 'panorama' or 'sphere'), got view "
                           f"{view!r}: photos (e.g. drone views) have no bearing geometry")
-    headings = candidate_headings(steps)
     fov = check_fov(fov_deg)
-    tensors = [to_tensor(align_query(view_canvas(street, fov, h), cfg, view)) for h in headings]
-    return torch.stack(tensors), headings
+    return torch.stack([to_tensor(align_query(view_canvas(street, fov, h), cfg, view)) for h in headings])
 
 
 EVAL_HEADING_SEED = 12  # issue 12: the evaluation headings are one fixed draw, the same for every checkpoint

@@ -19,7 +19,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.data.crossview import read_rgb, shared_config
 from geoloc.data.geo import distance_m
-from geoloc.data.heading import check_fov, circular_error_deg, query_candidates
+from geoloc.data.heading import check_fov, circular_error_deg, query_candidates, query_inputs
 from geoloc.engine import checkpoint
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview.places import read_places
@@ -91,7 +91,8 @@ class Localizer:
         if heading is None:
             inputs, headings = query_candidates(street, self.data_cfg, self.view, fov, self.heading_steps)
         else:
-            inputs, headings = self._at_heading(street, fov, float(heading)), np.array([float(heading) % 360.0])
+            headings = np.array([float(heading) % 360.0])
+            inputs = query_inputs(street, self.data_cfg, self.view, fov, headings)
         descriptors = self.encoder(inputs.to(self.device)).float()
         # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
         scores, rows = self.index.search(descriptors, min(len(self.index), int(topk)))
@@ -104,12 +105,6 @@ class Localizer:
         if truth is not None:
             answer["truth"] = truth
         return answer
-
-    def _at_heading(self, street: np.ndarray, fov: float, heading: float) -> torch.Tensor:
-        from geoloc.data.crossview import align_query, to_tensor
-        from geoloc.data.heading import view_canvas
-
-        return to_tensor(align_query(view_canvas(street, fov, heading), self.data_cfg, self.view))[None]
 
     def _merge(self, scores: np.ndarray, rows: np.ndarray, headings: np.ndarray) -> list[dict]:
         """Each gallery row's best score over the K candidates, and that candidate's heading; best first."""

@@ -19,7 +19,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.data.crossview import read_rgb, shared_config
 from geoloc.data.geo import distance_m
-from geoloc.data.heading import check_fov, circular_error_deg, query_candidates, query_inputs
+from geoloc.data.heading import check_fov, query_candidates, query_inputs
 from geoloc.engine import checkpoint
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview.places import read_places
@@ -134,9 +134,6 @@ class Localizer:
             truth["position"] = {k: line[k] for k in ("lat", "lon", "x_m", "y_m") if k in line}
             top1 = self.places.reference_positions[best[0]["row"]]
             truth["error_m"] = float(distance_m(where, top1, self.places.kind))
-        if "heading_deg" in line:
-            truth["heading_deg"] = line["heading_deg"]
-            truth["heading_error_deg"] = float(circular_error_deg(best[0]["heading_deg"], line["heading_deg"]))
         return truth
 
 

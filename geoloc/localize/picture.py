@@ -89,8 +89,6 @@ def localization_figure(answer: dict, image: np.ndarray, places, out: Path) -> P
     ax = fig.add_subplot(grid[0, : cols - (2 if has_map else 0)])
     ax.imshow(image)
     heading = f"heading {answer['heading_deg']:.0f}° ({answer['heading_source']})"
-    if "heading_deg" in truth:
-        heading += f" (true {truth['heading_deg']:.0f}°)"
     ax.set_title(f"{Path(str(answer.get('image') or 'query')).name}  fov {answer['fov_deg']:.0f}°  {heading}",
                  fontsize=9)
     ax.axis("off")

@@ -4,12 +4,12 @@ dataset.split=val] metrics_out=metrics.json. Model and transforms are rebuilt fr
 import hydra
 from omegaconf import DictConfig
 
-import geoloc.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
+import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    from geoloc.run import evaluate
+    from geoloc.launch.run import evaluate
 
     evaluate(cfg)
 

@@ -7,7 +7,7 @@ from omegaconf import DictConfig
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="export")
 def main(cfg: DictConfig) -> None:
-    from geoloc.deploy.onnx_export import export
+    from geoloc.apps.export.onnx_export import export
 
     export(cfg)
 

@@ -1,16 +1,16 @@
 """Localize street images against a saved gallery: python localize.py ckpt=.../best.pt gallery=DIR image=FILE_OR_DIR
 [topk=5] [fov=360] [heading=null] [out=DIR]. Prints one JSON line per image and writes them to out/localize.jsonl,
-with a picture per image (geoloc/localize/)."""
+with a picture per image (geoloc/apps/localize/)."""
 
 import hydra
 from omegaconf import DictConfig
 
-import geoloc.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
+import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="localize")
 def main(cfg: DictConfig) -> None:
-    from geoloc.localize.run import localize
+    from geoloc.apps.localize.run import localize
 
     localize(cfg)
 

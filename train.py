@@ -9,12 +9,12 @@ Examples: python train.py dataset=cvusa dataset.root=/data/CVUSA
 import hydra
 from omegaconf import DictConfig
 
-import geoloc.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
+import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
-    from geoloc.run import train
+    from geoloc.launch.run import train
 
     best = train(cfg)
     return float(best.get("R@1", 0.0))  # the value Hydra sweepers optimise

@@ -25,7 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from geoloc.data.dynamic import DynamicDataset  # noqa: E402
+from geoloc.tasks.mmdip.datasets import DynamicDataset  # noqa: E402
 from geoloc.models.erfnet import ERFNet  # noqa: E402
 from geoloc.models.unet import UNet  # noqa: E402
 from geoloc.tasks.mmdip.networks import generator_input  # noqa: E402
@@ -44,7 +44,7 @@ def median_ms(fn, repeat: int) -> float:
 
 def load_views(root: str | None, n: int) -> tuple[np.ndarray, np.ndarray]:
     if root is None:
-        from geoloc.data.synthetic import generate
+        from geoloc.synthetic import generate
 
         root = tempfile.mkdtemp(prefix="bench_mmdip_")
         print(f"generating {n} places of 512 x 512 views into {root} ...")

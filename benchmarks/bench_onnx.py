@@ -31,8 +31,8 @@ def main() -> None:
     import onnxruntime
     from hydra import compose, initialize_config_dir
 
-    from geoloc.data import crossview as data
-    from geoloc.deploy.onnx_export import export_encoders
+    from geoloc.tasks.crossview.data_config import shared_config
+    from geoloc.apps.export.onnx_export import export_encoders
     from geoloc.tasks.crossview.run import build_task
 
     torch.set_num_threads(args.threads)
@@ -40,7 +40,7 @@ def main() -> None:
         cfg = compose("train", overrides=[*args.overrides, "run_dir=."])
     torch.manual_seed(0)
     model = build_task(cfg).model.eval()
-    data_cfg = data.shared_config(cfg.dataset)
+    data_cfg = shared_config(cfg.dataset)
     print(f"model: backbone={cfg.backbone.name} head={cfg.head.name} dim={cfg.model.dim} "
           f"alignment={data_cfg.alignment} aerial_size={data_cfg.aerial_size}; {args.threads} thread(s), "
           f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}")

@@ -17,10 +17,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 
-from geoloc.data.synthetic import generate  # noqa: E402
-from geoloc.data.synthetic.config import resolve  # noqa: E402
-from geoloc.data.synthetic.layouts import encode  # noqa: E402
-from geoloc.data.synthetic.samples import render_pair, render_place_views  # noqa: E402
+from geoloc.synthetic import generate  # noqa: E402
+from geoloc.synthetic.config import resolve  # noqa: E402
+from geoloc.synthetic.layouts import encode  # noqa: E402
+from geoloc.synthetic.samples import render_pair, render_place_views  # noqa: E402
 
 
 def per_core(layout: str, preset: str, n: int) -> None:

@@ -18,12 +18,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 
-from geoloc.data.synthetic import generate  # noqa: E402
-from geoloc.data.synthetic.city import (build_city, city_rngs, panorama_position,  # noqa: E402
+from geoloc.synthetic import generate  # noqa: E402
+from geoloc.synthetic.city import (build_city, city_rngs, panorama_position,  # noqa: E402
                                         render_panorama, render_tiles)
-from geoloc.data.synthetic.config import resolve, resolve_options  # noqa: E402
-from geoloc.data.synthetic.drone import render_building  # noqa: E402
-from geoloc.data.synthetic.layouts import encode  # noqa: E402
+from geoloc.synthetic.config import resolve, resolve_options  # noqa: E402
+from geoloc.synthetic.drone import render_building  # noqa: E402
+from geoloc.synthetic.layouts import encode  # noqa: E402
 
 
 def _cpu(fn):

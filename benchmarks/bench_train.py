@@ -33,7 +33,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from geoloc.config import checked  # noqa: E402
-from geoloc.data import crossview as data  # noqa: E402
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig  # noqa: E402
+from geoloc.tasks.crossview.datasets import build  # noqa: E402
 from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
 from geoloc.tasks.crossview.run import build_task  # noqa: E402
 
@@ -43,7 +44,7 @@ def dataset_root(args) -> Path:
         return Path(args.root)
     root = Path(args.cache)
     if not (root / "splits" / "train-19zl.csv").is_file():
-        from geoloc.data.synthetic import generate
+        from geoloc.synthetic import generate
 
         print(f"generating a 64-pair CVUSA-size synthetic dataset into {root} ...", flush=True)
         generate("cvusa", str(root), 64, 8, seed=0, preset="cvusa", progress=False)
@@ -126,7 +127,7 @@ def main(argv=None) -> dict:
     root = dataset_root(args)
     cfg = config(args, root, Path("/tmp/geoloc_bench/run"))
     trainer = Trainer(checked(cfg.trainer, TrainerConfig, "trainer"), "/tmp/geoloc_bench/run")
-    train_set = data.build(checked(cfg.dataset, data.CrossViewDataConfig, "dataset"), "train", train=True)
+    train_set = build(checked(cfg.dataset, CrossViewDataConfig, "dataset"), "train", train=True)
     print(f"device {trainer.device}, precision {args.precision}, channels_last {args.channels_last}, compile "
           f"{args.compile}, batch {args.batch}, workers {args.workers}, torch threads {torch.get_num_threads()}, "
           f"data {root} ({len(train_set)} pairs)", flush=True)

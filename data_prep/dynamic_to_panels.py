@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from geoloc.data.dynamic import CARLA_TO_STATIC, DynamicDataset, read_label, read_rgb  # noqa: E402
+from geoloc.tasks.mmdip.datasets import CARLA_TO_STATIC, DynamicDataset, read_label, read_rgb  # noqa: E402
 
 # one CARLA 0.8 tag per static class (the inverse of CARLA_TO_STATIC on its first tag), then the two dynamic
 # classes of label_dynamic: 8 vehicle -> tag 10, 9 pedestrian -> tag 4

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from geoloc.config import ConfigError, checked
 
 SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
-    "serve": ("geoloc.serve.command", "answer POST /localize and GET /health over HTTP", "serve"),
+    "serve": ("geoloc.apps.serve.command", "answer POST /localize and GET /health over HTTP", "serve"),
 }
 
 

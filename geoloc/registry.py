@@ -41,13 +41,13 @@ KINDS = {
 NAME_KEYS = {"segmenter": "task.segmentation.model"}
 # the modules that register geoloc's own components (imported on first lookup)
 BUILTIN_MODULES = (
-    "geoloc.data.readers",
+    "geoloc.datasets",
     "geoloc.models.backbones",
     "geoloc.models.heads",
     "geoloc.losses.gms_triplet_loss",
     "geoloc.losses.infonce",
     "geoloc.data.samplers",
-    "geoloc.optim",
+    "geoloc.models.optim",
     "geoloc.tasks.mmdip.networks",
 )
 RESERVED = ("name", "module")

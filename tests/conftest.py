@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,7 +70,7 @@ def compose_evaluate(overrides: list[str]):
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory) -> tuple[Path, Path]:
     """(dataset root, run dir) of one finished 1-epoch TINY run, shared by a module's tests, which only read it."""
-    from geoloc import run
+    from geoloc.launch import run
 
     base = tmp_path_factory.mktemp("finished")
     root = write_cvusa(base / "cvusa", n_train=12, n_val=8)
@@ -99,3 +100,12 @@ def tiny_task(dim: int = 8, width: float = 0.0625, batchnorm: bool = True, loss:
     head = {"name": "msae", "scale_channels": 4, "proj_channels": 4, "pool": 2}
     return CrossViewTask(CrossViewModelConfig(dim=dim), backbone, head, {"name": "gms_triplet", **(loss or {})},
                          optim or {"name": "adam"})
+
+
+@pytest.fixture
+def one_thread():
+    # the machine is shared: several intra-op threads spin against each other and make tiny convs 100x slower
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import pytest
-from conftest import CONF, compose_evaluate, compose_train
-from hydra.errors import MissingConfigException
-
 from geoloc import registry
 from geoloc.config import ConfigError, checked
-from geoloc.data.crossview import CrossViewDataConfig, read_split, shared_config
 from geoloc.engine import TrainerConfig
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig, shared_config
+from geoloc.tasks.crossview.datasets import read_split
 from geoloc.tasks.crossview.run import build_task
+from hydra.errors import MissingConfigException
+
+from conftest import CONF, compose_evaluate, compose_train
 
 SMALL_NETWORK = ["backbone.width=0.125", "backbone.pretrained=false", "model.dim=32"]
 

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import REPO, compose_train, write_cvusa
-
 from geoloc import registry
 from geoloc.config import ConfigError
-from geoloc.data.crossview import read_split
+from geoloc.tasks.crossview.datasets import read_split
 from geoloc.tasks.crossview.run import build_task
+
+from conftest import REPO, compose_train, write_cvusa
 
 PLUGINS = Path(__file__).parent / "plugins"
 SEARCHPATH = f"hydra.searchpath=[file://{PLUGINS / 'conf'}]"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch
-
 from geoloc.engine import Task
 from geoloc.engine.sampling import split_key
 

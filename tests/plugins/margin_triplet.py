@@ -1,9 +1,8 @@
 """A loss plug-in: a hard-margin triplet on the hardest in-batch negative of each query, label-aware."""
 
 import torch
-from torch import nn
-
 from geoloc.registry import register
+from torch import nn
 
 
 class MarginTriplet(nn.Module):

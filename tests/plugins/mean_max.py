@@ -2,9 +2,8 @@
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from geoloc.registry import register
+from torch import nn
 
 
 class MeanMaxHead(nn.Module):

@@ -1,7 +1,6 @@
 """An optimizer plug-in: SGD with momentum and a constant learning rate."""
 
 import torch
-
 from geoloc.registry import register
 
 

@@ -1,9 +1,8 @@
 """A backbone plug-in: two strided convolutions, returning both maps (fine to coarse)."""
 
 import torch
-from torch import nn
-
 from geoloc.registry import register
+from torch import nn
 
 
 class TinyCNN(nn.Module):

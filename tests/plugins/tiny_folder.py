@@ -3,7 +3,6 @@
 from pathlib import Path
 
 import numpy as np
-
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.registry import register
 

@@ -1,8 +1,7 @@
 """A segmenter plug-in for task=mmdip: one 3x3 convolution to class logits."""
 
-from torch import nn
-
 from geoloc.registry import register
+from torch import nn
 
 
 @register("segmenter", "tiny_segmenter")

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from geoloc.config import ConfigError
-from geoloc.data.crossview import EvalData
+from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.data.geo import distance_m
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine import distributed as dist

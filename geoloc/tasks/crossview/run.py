@@ -8,14 +8,15 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from geoloc.config import ConfigError, checked, to_yaml
-from geoloc.data import crossview as data
+from geoloc.tasks.crossview.data_config import SHARED_KEYS, check_reader_keys, shared_config
+from geoloc.tasks.crossview.datasets import build, build_eval, known_heading
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.engine import resume
+from geoloc.launch import resume
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview import gallery
-from geoloc.tasks.crossview.config import is_old_layout, upgraded_config, upgraded_state
+from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state
 from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.task import CrossViewTask
 
@@ -35,8 +36,8 @@ def build_task(cfg: DictConfig) -> CrossViewTask:
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    data.shared_config(cfg.dataset)  # bad dataset keys fail here, before anything is read or generated
-    data.check_reader_keys(cfg.dataset)
+    shared_config(cfg.dataset)  # bad dataset keys fail here, before anything is read or generated
+    check_reader_keys(cfg.dataset)
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
     if cfg.get("ckpt"):
         resume.checked_resume(cfg)  # before any data is generated or checked
@@ -45,9 +46,9 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     source = None
     if cfg.get("init_from"):
         source = resume.init_from(task, cfg.init_from, fresh=INIT_FROM_FRESH)
-    data_cfg = data.shared_config(cfg.dataset)
-    train_set = data.build(cfg.dataset, "train", train=True, augment_seed=trainer_cfg.seed)
-    val_set = data.build_eval(cfg.dataset, data_cfg.val_split)
+    data_cfg = shared_config(cfg.dataset)
+    train_set = build(cfg.dataset, "train", train=True, augment_seed=trainer_cfg.seed)
+    val_set = build_eval(cfg.dataset, data_cfg.val_split)
     trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))
     if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
         resume.write_source(run_dir, source)
@@ -58,11 +59,11 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
         print_table(best, f"best validation (epoch {best.get('epoch')}), {len(val_set)} queries, {val_set.split.name}")
         print(f"checkpoints: {run_dir / 'best.pt'}  {run_dir / 'last.pt'}")
         if cfg.get("figures", True) and (run_dir / "best.pt").is_file():
-            from geoloc.eval.figures import crossview_figures
+            from geoloc.tasks.crossview.figures import crossview_figures
 
             state = ckpt_io.load(run_dir / "best.pt")
             ckpt_io.load_task_state(task, state, run_dir / "best.pt")
-            crossview_figures(task, data.known_heading(val_set), run_dir, trainer.device,
+            crossview_figures(task, known_heading(val_set), run_dir, trainer.device,
                               data_cfg.val_batch_size or data_cfg.batch_size)
     return best
 
@@ -71,8 +72,8 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     """Rebuild model and transforms from the checkpoint's config, score a split, write `metrics_out`."""
     task, stored = restored_task(state, cfg.ckpt)
     data_section = merged_dataset(stored.dataset, cfg.get("dataset"))
-    data_cfg = data.shared_config(data_section)
-    eval_data = data.build_eval(data_section, data_cfg.split)
+    data_cfg = shared_config(data_section)
+    eval_data = build_eval(data_section, data_cfg.split)
     trainer = Trainer(TrainerConfig(device=cfg.get("device", "auto"), num_workers=cfg.get("num_workers", 0),
                                     progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
     task.to(trainer.device)
@@ -112,7 +113,7 @@ def load_checkpoint(ckpt, use: str) -> tuple[CrossViewTask, DictConfig, dict]:
 
 def restored_task(state: dict, ckpt) -> tuple[CrossViewTask, DictConfig]:
     """The task a checkpoint's config describes, with the checkpoint's weights, on the CPU, and that config (older
-    layouts upgraded: geoloc/tasks/crossview/config.py). `ckpt` names the file in errors. Used by evaluate, export
+    layouts upgraded: geoloc/tasks/crossview/legacy.py). `ckpt` names the file in errors. Used by evaluate, export
     and localize."""
     stored = OmegaConf.create(state["config"])
     if is_old_layout(stored):
@@ -130,7 +131,7 @@ def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConf
     section = OmegaConf.to_container(stored, resolve=True)
     overlay = OmegaConf.to_container(requested, resolve=True) if requested else {}
     if overlay.get("name") not in (None, section.get("name")):
-        section = {k: v for k, v in section.items() if k in data.SHARED_KEYS and k != "module"}
+        section = {k: v for k, v in section.items() if k in SHARED_KEYS and k != "module"}
         section["root"] = None  # another dataset never inherits the trained one's root
     for key, value in overlay.items():
         if value is not None and key not in TRANSFORM_KEYS:

@@ -17,7 +17,7 @@ from geoloc.engine import Task
 from geoloc.engine import distributed as dist
 from geoloc.eval import recall_at_k
 from geoloc.eval.descriptors import check_descriptors, guarded_recall
-from geoloc.eval.heading import collapsed_heading_metrics, heading_metrics
+from geoloc.tasks.crossview.heading import collapsed_heading_metrics, heading_metrics
 from geoloc.eval.retrieval_metrics import collapsed_split_metrics, split_metrics
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
@@ -117,7 +117,7 @@ class CrossViewTask(Task):
             query, reference = outputs["query"], outputs["reference"]
         # Non-finite descriptors raise; a collapse (ties count in the query's favour, so one shared descriptor would
         # score R@1 = 100%) reports recall 0. The same checks guard the saved-gallery path (gallery.py).
-        if query.ndim == 3:  # Q×K×D: each query at K candidate headings (geoloc/eval/heading.py)
+        if query.ndim == 3:  # Q×K×D: each query at K candidate headings (geoloc/tasks/crossview/heading.py)
             spread = check_descriptors(query.flatten(0, 1), reference)
             return guarded_recall(lambda: heading_metrics(query, reference, outputs["heading"]), spread,
                                   collapsed=collapsed_heading_metrics())

@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from geoloc.config import ConfigError, checked, to_yaml
-from geoloc.data.dynamic import (NUM_CLASSES, CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset,
+from geoloc.tasks.mmdip.datasets import (NUM_CLASSES, CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset,
                                  load_class_fractions)
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
@@ -36,8 +36,8 @@ def dataset_root(cfg: DynamicDataConfig) -> Path:
     """The dataset folder; the synthetic `dynamic` layout is generated on first use when root is null."""
     if cfg.root:
         return Path(cfg.root).expanduser()
-    from geoloc.data.readers import default_cache
-    from geoloc.data.synthetic import ensure_dataset
+    from geoloc.synthetic import default_cache
+    from geoloc.synthetic import ensure_dataset
 
     root = default_cache() / (f"dynamic-{cfg.preset}-{cfg.view_size or 'preset'}px-{cfg.train_size}-{cfg.val_size}"
                               f"-seed{cfg.seed}")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from torch.utils.data import Dataset
 
-from geoloc.data.dynamic import CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset, panel_folder
+from geoloc.tasks.mmdip.datasets import CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset, panel_folder
 
 TRAIN_SPLIT = "train"
 FROM_TRAIN, FROM_GALLERY = "train split", "gallery (no train split)"

@@ -34,9 +34,9 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from geoloc.config import to_yaml  # noqa: E402
-from geoloc.data.dynamic import STATIC_CLASSES, load_class_fractions  # noqa: E402
-from geoloc.data.synthetic.classes import colorize  # noqa: E402
-from geoloc.eval.figures import _grid, _save  # noqa: E402
+from geoloc.tasks.mmdip.datasets import STATIC_CLASSES, load_class_fractions  # noqa: E402
+from geoloc.synthetic.classes import colorize  # noqa: E402
+from geoloc.eval.plots import grid, save_png  # noqa: E402
 from geoloc.tasks.mmdip.pipeline import build_split, dataset_root, parse, run_phase1, run_phase2  # noqa: E402
 from geoloc.tasks.mmdip.protocol import place_protocol  # noqa: E402
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id  # noqa: E402
@@ -130,10 +130,10 @@ def recall_curves(ranks: dict[str, dict], out: Path) -> None:
 def qualitative(examples: dict[str, dict], out: Path, n: int = 4) -> None:
     ss = examples["ssggnet"]
     rows = [[ss["dynamic"][i], colorize(ss["seg"][i]), ss["recovered"][i], ss["static"][i]] for i in range(n)]
-    _save(out / "qualitative_ssggnet.png", _grid(rows))
+    save_png(out / "qualitative_ssggnet.png", grid(rows))
     order = [v for v in ("pix2pix", "mgan", "ssggnet_sm", "ssggnet") if v in examples]
     rows = [[ss["dynamic"][i], *(examples[v]["recovered"][i] for v in order), ss["static"][i]] for i in range(n)]
-    _save(out / "qualitative_variants.png", _grid(rows))
+    save_png(out / "qualitative_variants.png", grid(rows))
 
 
 def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:

@@ -1,0 +1,162 @@
+"""`python export.py ckpt=PATH format=onnx`: a cross-view checkpoint's two encoders as ONNX files with a dynamic
+batch size, and `encoders.json` beside them saying what each file expects (geoloc/apps/export/input_spec.py).
+
+out/query.onnx       the query (ground-view) branch: B×3×Hq×Wq -> B×dim, L2-normalised
+out/reference.onnx   the reference (aerial) branch:  B×3×Hr×Wr -> B×dim, L2-normalised
+out/encoders.json    input names and shapes, preprocessing, output dim, opset, the torch-vs-onnxruntime check
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from geoloc.config import ConfigError
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig, shared_config
+from geoloc.apps.export import input_spec
+
+FORMATS = ("onnx",)
+FILES = {"query": "query.onnx", "reference": "reference.onnx"}
+SPEC_FILE = "encoders.json"
+INPUT_NAME, OUTPUT_NAME = "image", "descriptor"
+# a protobuf file holds at most 2 GB: a branch with more weights than this keeps them in `<file>.data` beside it
+SINGLE_FILE_BYTES = 1_800_000_000
+# the exported graph must reproduce torch's descriptors (unit vectors) to float32 rounding; far above it, it is wrong
+CHECK_TOLERANCE = 1e-4
+
+
+def export(cfg: DictConfig) -> dict:
+    """export.py's work; returns what encoders.json holds. Nothing is read or written before the format, the
+    exporter's packages and the output folder are checked."""
+    if cfg.format not in FORMATS:
+        raise ConfigError(f"format={cfg.format} is not supported; export.py writes {', '.join(FORMATS)} "
+                          f"(format=onnx)")
+    require_packages()
+    ckpt = Path(cfg.ckpt)
+    out = Path(cfg.out) if cfg.get("out") else default_out(ckpt)
+    if not cfg.get("overwrite", False):
+        refuse_existing(out)
+    from geoloc.tasks.crossview.run import load_checkpoint
+
+    task, stored, state = load_checkpoint(ckpt, "export.py")
+    data_cfg = shared_config(stored.dataset)
+    view = input_spec.query_view_of(data_cfg.name, cfg.get("query_view"))
+    # the exporter's graph passes log each step at INFO, which Hydra's job logging would print
+    for name in ("onnxscript", "onnx_ir"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    started = time.perf_counter()
+    spec = export_encoders(task.model.eval(), data_cfg, view, out, opset=cfg.get("opset"))
+    spec["source"] = {"ckpt": str(ckpt), "epoch": state.get("epoch"), "dataset": data_cfg.name}
+    (out / SPEC_FILE).write_text(json.dumps(spec, indent=2) + "\n")
+    sizes = ", ".join(f"{f} {(out / f).stat().st_size / 1e6:.1f} MB" for f in FILES.values())
+    print(f"exported in {time.perf_counter() - started:.1f} s to {out}: {sizes}, {SPEC_FILE}")
+    return spec
+
+
+def export_encoders(model: torch.nn.Module, data_cfg: CrossViewDataConfig, query_view: str, out: Path,
+                    opset: int | None = None) -> dict:
+    """Write query.onnx and reference.onnx for `model` (a CrossViewModel in eval mode) into `out`; return the
+    spec of both. Files are written to a temp folder inside `out` and moved in at the end: a failed export leaves
+    no partial file behind."""
+    query_encoder, reference_encoder = model.encoders(aerial_queries=False)
+    branches = {"query": (query_encoder, f"ground ({query_view})", input_spec.query_input(data_cfg, query_view)),
+                "reference": (reference_encoder, "aerial", input_spec.reference_input(data_cfg))}
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".export-", dir=out))
+    try:
+        spec = {}
+        for name, (branch, view, (hw, geometry)) in branches.items():
+            example = torch.randn(2, 3, *hw, generator=torch.Generator().manual_seed(0))
+            used_opset = export_branch(branch, example, tmp / FILES[name], opset)
+            entry = input_spec.branch_entry(FILES[name], view, hw, geometry, model_dim(branch, example),
+                                            INPUT_NAME, OUTPUT_NAME)
+            entry["checked_against_torch"] = checked(branch, tmp / FILES[name], example)
+            spec[name] = entry
+        for path in tmp.iterdir():
+            os.replace(path, out / path.name)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    tmp.rmdir()
+    return {"format": "geoloc cross-view encoders, ONNX", "opset": used_opset,
+            "exporter": f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
+            "dataset": {"name": data_cfg.name, "alignment": data_cfg.alignment, "aerial_size": data_cfg.aerial_size,
+                        "pano_size": list(data_cfg.pano_size)},
+            "shared_weights": bool(getattr(model, "shared", False)),
+            "usage": ("each image goes through its own view's file: ground images (street panoramas, drone photos) "
+                      "through query.onnx, aerial images through reference.onnx; rank references by the dot "
+                      "product of the descriptors. For aerial queries (University-1652 satellite -> drone) the "
+                      "queries go through reference.onnx and the drone gallery through query.onnx."),
+            "normalisation": input_spec.normalisation(), **spec}
+
+
+def export_branch(branch: torch.nn.Module, example: torch.Tensor, path: Path, opset: int | None) -> int:
+    """One branch to `path`, batch dimension dynamic, H and W fixed to the example's; returns the opset written.
+
+    Exporter: torch.export (dynamo=True) with a dynamic batch Dim. The TorchScript exporter (dynamo=False) refuses
+    MSAE's adaptive pooling to a size read from another map ("output_size is not constant"); torch.export traces
+    it with H, W static and lowers it for any sizes (e.g. the paper's 18x18 conv5_3 map pooled to 8x8), and
+    exports the timm ConvNeXt trunk too. H and W stay fixed: made dynamic, non-divisible adaptive pooling is
+    lowered for the example's sizes only and gives wrong descriptors at others."""
+    big = sum(t.numel() * t.element_size() for t in [*branch.parameters(), *branch.buffers()]) > SINGLE_FILE_BYTES
+    # an example batch of 2: a batch of 1 would be specialised as a constant
+    program = torch.onnx.export(branch, (example,), str(path), input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
+                                dynamo=True, dynamic_shapes=({0: torch.export.Dim("batch", min=1)},),
+                                opset_version=opset, external_data=big, verbose=False)
+    return int(program.model.opset_imports[""])
+
+
+def model_dim(branch: torch.nn.Module, example: torch.Tensor) -> int:
+    with torch.no_grad():
+        return int(branch(example[:1]).shape[1])
+
+
+def checked(branch: torch.nn.Module, path: Path, example: torch.Tensor) -> dict | None:
+    """onnxruntime's descriptors of `example` against torch's (max abs difference); None without onnxruntime."""
+    if importlib.util.find_spec("onnxruntime") is None:
+        return None
+    import onnxruntime
+
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        expected = branch(example).numpy()
+    got = session.run([OUTPUT_NAME], {INPUT_NAME: example.numpy()})[0]
+    diff = float(np.abs(got - expected).max())
+    if not diff <= CHECK_TOLERANCE:
+        raise RuntimeError(f"{path.name}: onnxruntime's descriptors differ from torch's by {diff:.3g} (max abs) on "
+                           f"a random batch; the export is wrong, nothing was written. Please report it with the "
+                           f"backbone and head config.")
+    return {"max_abs_diff": diff, "batch": int(example.shape[0]), "onnxruntime": onnxruntime.__version__}
+
+
+def default_out(ckpt: Path) -> Path:
+    """Beside the checkpoint: outputs/.../best.pt -> outputs/.../best_onnx/."""
+    return ckpt.parent / f"{ckpt.stem}_onnx"
+
+
+def refuse_existing(out: Path) -> None:
+    names = [*FILES.values(), *(f + ".data" for f in FILES.values()), SPEC_FILE]
+    taken = [name for name in names if (out / name).exists()]
+    if taken:
+        raise ConfigError(f"out={out} already holds {', '.join(taken)}; nothing was exported. Choose another "
+                          f"out=DIR, or pass overwrite=true to replace them.")
+
+
+def require_packages() -> None:
+    missing = [m for m in ("onnx", "onnxscript") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise ImportError(f"format=onnx needs the packages {', '.join(missing)} (torch.onnx's exporter): "
+                          "pip install -e '.[export]' (onnx, onnxscript, onnxruntime)")

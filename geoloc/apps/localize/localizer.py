@@ -1,0 +1,148 @@
+"""One street image in, a position and a heading out: a checkpoint's query branch against a saved gallery.
+
+The gallery is what `python evaluate.py ckpt=... gallery.save=DIR` writes (geoloc/tasks/crossview/gallery.py and
+places.py): the reference descriptors, where each reference is, and the split's queries. The heading is unknown in
+general, so the image is encoded at K candidate headings on the 360° canvas (geoloc/tasks/crossview/views.py) and each
+reference keeps its best-scoring candidate: the score ranks the references, the candidate is the heading estimate
+(a circular correlation through the query encoder, DSM-style). `heading=` skips the search when it is known
+(north-aligned panoramas such as CVUSA's are heading 0).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from geoloc.config import ConfigError
+from geoloc.data.io import read_rgb
+from geoloc.tasks.crossview.data_config import shared_config
+from geoloc.data.geo import distance_m
+from geoloc.tasks.crossview.heading import query_candidates, query_inputs
+from geoloc.tasks.crossview.views import check_fov
+from geoloc.engine import checkpoint
+from geoloc.eval.gallery import GalleryIndex
+from geoloc.tasks.crossview.places import read_places
+
+
+
+class Localizer:
+    """A cross-view checkpoint and a saved gallery, loaded once; `localize(image)` answers one image.
+
+    `localize` only reads the model and the index, so concurrent calls are safe; on a CPU they gain nothing from
+    running at once (the service serialises them)."""
+
+    def __init__(self, task, data_cfg, index: GalleryIndex, places, info: dict, device: torch.device,
+                 heading_steps: int = 36):
+        self.task, self.data_cfg, self.index, self.places, self.meta = task, data_cfg, index, places, info
+        self.device, self.heading_steps = device, int(heading_steps)
+        self.view = info.get("query_view", "panorama")
+        if self.view not in ("panorama", "sphere"):
+            raise ConfigError(f"the gallery was built from {info.get('split')}, whose queries are {self.view} "
+                              "images; localize takes street panoramas or limited-FoV street photos")
+        self.encoder = task.model.encoders(False)[0]
+
+    @classmethod
+    def load(cls, ckpt, gallery, device: str = "auto", heading_steps: int = 36) -> "Localizer":
+        from geoloc.tasks.crossview.run import load_checkpoint
+
+        task, stored, _ = load_checkpoint(ckpt, "localize")
+        folder = Path(gallery)
+        if not (folder / "gallery.json").is_file():
+            raise FileNotFoundError(f"{folder} holds no saved gallery (gallery.json). Build one from the split "
+                                    f"whose references you want to search: python evaluate.py ckpt={ckpt} "
+                                    f"[dataset=... dataset.root=DIR] gallery.save={folder}")
+        info = json.loads((folder / "gallery.json").read_text())
+        places = read_places(folder, info)
+        fingerprint = checkpoint.weights_fingerprint(task.model)
+        if info.get("model_fingerprint") != fingerprint:
+            raise ConfigError(f"the gallery in {folder} was built with other weights ({info.get('ckpt')}) than "
+                              f"{ckpt}: its descriptors would not match. Rebuild it with python evaluate.py "
+                              f"ckpt={ckpt} gallery.save=NEW_DIR")
+        dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
+                           "cpu" if device == "auto" else device)
+        task.to(dev).eval()
+        index = GalleryIndex.load(folder / "gallery.pt", device=dev)
+        return cls(task, shared_config(stored.dataset), index, places, {**info, "ckpt_loaded": str(ckpt)}, dev,
+                   heading_steps)
+
+    def info(self) -> dict:
+        """What /health and the JSON output say about the loaded model and gallery."""
+        return {"ckpt": self.meta.get("ckpt_loaded"), "gallery_size": len(self.index), "dim": self.index.dim,
+                "index": self.index.kind, "positions": self.places.kind, "query_view": self.view,
+                "device": str(self.device), "heading_steps": self.heading_steps}
+
+    @torch.no_grad()
+    def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | None = None,
+                 name: str | None = None, path: Path | None = None) -> dict:
+        """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
+        photo covering `fov` degrees of bearing, horizon band only. heading: its bearing when known (degrees
+        clockwise from north); None searches `heading_steps` candidates. path: the file, to find the image among
+        the gallery split's queries (its true position then comes with the answer)."""
+        if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"image must be an H×W×3 uint8 RGB array, got {getattr(image, 'shape', type(image))} "
+                             f"{getattr(image, 'dtype', '')}")
+        fov = check_fov(fov, "fov")
+        if int(topk) != topk or topk < 1:
+            raise ValueError(f"topk must be an int >= 1, got {topk!r}")
+        street = image
+        if self.view == "sphere" and fov == 360.0:  # a full sphere: its horizon band, as the split's queries
+            street = street[street.shape[0] // 4: 3 * street.shape[0] // 4]
+        if heading is None:
+            inputs, headings = query_candidates(street, self.data_cfg, self.view, fov, self.heading_steps)
+        else:
+            headings = np.array([float(heading) % 360.0])
+            inputs = query_inputs(street, self.data_cfg, self.view, fov, headings)
+        descriptors = self.encoder(inputs.to(self.device)).float()
+        # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
+        scores, rows = self.index.search(descriptors, min(len(self.index), int(topk)))
+        best = self._merge(scores.numpy(), rows.numpy(), headings)[: int(topk)]
+        answer = {"image": name or (str(path) if path else None), "fov_deg": fov,
+                  "heading_deg": best[0]["heading_deg"], "heading_source": "search" if heading is None else "given",
+                  "position": self._position(best[0]["row"]),
+                  "topk": best, "positions": self.places.kind}
+        truth = self._truth(path, best)
+        if truth is not None:
+            answer["truth"] = truth
+        return answer
+
+    def _merge(self, scores: np.ndarray, rows: np.ndarray, headings: np.ndarray) -> list[dict]:
+        """Each gallery row's best score over the K candidates, and that candidate's heading; best first."""
+        best: dict[int, tuple[float, float]] = {}
+        for k in range(scores.shape[0]):
+            for score, row in zip(scores[k], rows[k]):
+                if row >= 0 and (row not in best or score > best[row][0]):
+                    best[int(row)] = (float(score), float(headings[k]))
+        ranked = sorted(best.items(), key=lambda item: (-item[1][0], item[0]))
+        return [{"rank": i + 1, **self.places.reference(row), "score": score, "heading_deg": heading}
+                for i, (row, (score, heading)) in enumerate(ranked)]
+
+    def _position(self, row: int) -> dict | None:
+        ref = self.places.reference(row)
+        return {k: v for k, v in ref.items() if k not in ("row", "path")} or None
+
+    def _truth(self, path: Path | None, best: list[dict]) -> dict | None:
+        """The split's record of this query: its true gallery row, position, the top-1 metre error and the rank of
+        the true reference among the top-k (None when not there)."""
+        line = self.places.query_of(path)
+        if line is None:
+            return None
+        truth = {"row": line["positive"], "reference": self.places.references[line["positive"]],
+                 "rank": next((b["rank"] for b in best if b["row"] == line["positive"]), None)}
+        where = self.places.position_of(line)
+        if where is not None:
+            truth["position"] = {k: line[k] for k in ("lat", "lon", "x_m", "y_m") if k in line}
+            top1 = self.places.reference_positions[best[0]["row"]]
+            truth["error_m"] = float(distance_m(where, top1, self.places.kind))
+        return truth
+
+
+def read_street(path: Path) -> np.ndarray:
+    """An image file as H×W×3 uint8 RGB (a clear error for a missing, truncated or non-image file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    return read_rgb(path)
+

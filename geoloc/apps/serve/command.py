@@ -1,0 +1,61 @@
+"""`geoloc serve ckpt=PATH gallery=DIR ...`: load the localizer once, then serve it with uvicorn (one process)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+from omegaconf import MISSING
+
+from geoloc.apps.serve.app import MAX_BYTES, MAX_PIXELS, create_app
+
+USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=cpu]
+                    [heading_steps=36] [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
+
+  ckpt        a checkpoint written by train.py (best.pt)
+  gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
+  host, port  where to listen (127.0.0.1: this machine only; 0.0.0.0: every interface)
+  device      cpu, cuda, cuda:1 ...
+  heading_steps  candidate headings tried when a request gives no heading (36: every 10 degrees)
+  max_pixels  a larger image gets 413, refused from its header before it is decoded
+  max_bytes   a larger request body gets 413
+
+POST /localize (multipart field image; fov, topk, heading) and GET /health; see README "Query service"."""
+
+
+@dataclass
+class ServeConfig:
+    ckpt: str = MISSING
+    gallery: str = MISSING
+    host: str = "127.0.0.1"
+    port: int = 8000
+    device: str = "cpu"
+    heading_steps: int = 36
+    max_pixels: int = MAX_PIXELS
+    max_bytes: int = MAX_BYTES
+
+    def __post_init__(self):
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if self.heading_steps < 1:
+            raise ValueError(f"heading_steps must be >= 1, got {self.heading_steps}")
+        if self.max_pixels < 1 or self.max_bytes < 1:
+            raise ValueError(f"max_pixels and max_bytes must be >= 1, got {self.max_pixels} and {self.max_bytes}")
+
+
+def main(args: list[str]) -> int:
+    import uvicorn
+
+    from geoloc.cli import parse_keys
+
+    cfg = parse_keys(args, ServeConfig, "serve")
+    from geoloc.apps.localize import Localizer  # torch and the model code: only once the arguments are good
+
+    try:  # once, before the first request: every request shares this model and gallery
+        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
+    except FileNotFoundError as err:  # its message names the file and how to make it
+        print(f"geoloc serve: {err}", file=sys.stderr)
+        return 2
+    app = create_app(localizer, max_pixels=cfg.max_pixels, max_bytes=cfg.max_bytes)
+    uvicorn.run(app, host=cfg.host, port=cfg.port)  # one worker process: a second would load a second model
+    return 0

@@ -1,0 +1,82 @@
+"""CVUSA (the 35,532 / 8,884 subset every cross-view paper uses) and the embedded synthetic world in its layout.
+
+`splits/{train,val}-19zl.csv`, rows `bingmap/19/N.jpg,streetview/panos/N.jpg,streetview/annotations/N.png`; an
+optional `positions.csv` (geoloc's own, positions.py) says where each panorama was taken. Nothing is decoded.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.datasets.common import pairs_split, require_root
+from geoloc.datasets.positions import read_positions
+from geoloc.registry import register
+
+CVUSA_SPLITS = {"train": "train-19zl.csv", "val": "val-19zl.csv"}
+
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def cvusa_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
+    root = Path(root)
+    if split not in CVUSA_SPLITS:
+        raise ValueError(f"CVUSA has splits {sorted(CVUSA_SPLITS)}, not {split!r}")
+    csv_path = root / "splits" / CVUSA_SPLITS[split]
+    if not csv_path.is_file():
+        raise FileNotFoundError(f"CVUSA split file {csv_path} not found. dataset.root must be the CVUSA folder "
+                                f"holding bingmap/, streetview/ and splits/ (root={root}).")
+    pairs = []
+    try:
+        with open(csv_path, newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a BOM is not part of a path
+            for line_no, row in enumerate(csv.reader(f), start=1):
+                if not row:
+                    continue
+                aerial, street = _cvusa_row(row, f"{csv_path}:{line_no}")
+                pairs.append((root / street, root / aerial))
+    except (UnicodeDecodeError, csv.Error) as err:  # a binary or mangled file
+        raise ValueError(f"CVUSA split file {csv_path} is not a readable csv ({err}); restore it from the "
+                         "dataset release") from err
+    if not pairs:
+        raise ValueError(f"CVUSA split file {csv_path} has no rows")
+    return pairs
+
+
+def _cvusa_row(row: list[str], where: str) -> tuple[str, str]:
+    """(aerial, street) relative paths of one split row; anything but two or three image paths is refused."""
+    if len(row) not in (2, 3):
+        raise ValueError(f"{where}: expected 'aerial,panorama,annotation' (2 or 3 columns), got {len(row)}: {row[:4]}")
+    aerial, street = row[0].strip(), row[1].strip()
+    for name in (aerial, street):
+        path = Path(name)
+        if path.is_absolute() or ".." in path.parts or path.suffix.lower() not in IMAGE_SUFFIXES:
+            raise ValueError(f"{where}: {name!r} is not an image path relative to dataset.root (expected e.g. "
+                             f"'bingmap/19/0000001.jpg,streetview/panos/0000001.jpg,...')")
+    return aerial, street
+
+
+def cvusa_layout_split(name: str, root, split: str) -> RetrievalSplit:
+    """CVUSA's split files, with the optional positions.csv (geoloc/datasets/positions.py)."""
+    pairs = cvusa_pairs(root, split)
+    return pairs_split(name, root, pairs, positions=read_positions(Path(root), [street for street, _ in pairs]))
+
+
+@register("dataset", "cvusa")
+def cvusa(root: str, split: str) -> RetrievalSplit:
+    """CVUSA's 35,532 / 8,884 subset (splits/{train,val}-19zl.csv); the panoramas are the horizon band."""
+    require_root(root, "cvusa")
+    return cvusa_layout_split(f"cvusa/{split}", root, split)
+
+
+@register("dataset", "synthetic")
+def synthetic(root: str | None, split: str, preset: str = "small", train_size: int = 1200, val_size: int = 300,
+              seed: int = 0, workers: int = 2) -> RetrievalSplit:
+    """The embedded default: a synthetic world in CVUSA's layout. `seed` picks the world, not the run's seed."""
+    from geoloc.synthetic import default_cache, ensure_dataset
+
+    root = Path(root).expanduser() if root else default_cache() / f"cvusa-{preset}-{train_size}-{val_size}-seed{seed}"
+    root = Path(ensure_dataset("cvusa", root, preset=preset, train=train_size, val=val_size, seed=seed,
+                               workers=workers))
+    return cvusa_layout_split(f"synthetic/{split}", root, split)

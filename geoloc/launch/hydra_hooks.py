@@ -1,0 +1,40 @@
+"""Hydra glue that acts before Hydra writes into a run dir.
+
+- `${pid:}`, registered when this module is imported (train.py, evaluate.py): the process id, so default run dirs
+  `outputs/<task>/<dataset>/<date>_<time>_<pid>` differ even for runs started in the same second. Cached like
+  Hydra's `${now:}`, so a sweep job started by a launcher in another process resolves the sweep dir to the same
+  folder (Hydra copies the resolver cache into each job's config; the job process imports this module when it
+  unpickles the callback below, which registers the resolver there too).
+- `RefuseTakenRunDir`: Hydra writes `.hydra/` into the run dir before the app starts, so a run refused only by
+  the app (geoloc/launch/rundir.py) would already have overwritten the config record of the run it protects.
+  This callback refuses a taken `hydra.run.dir` first. (Under `-m`, Hydra writes each job's `.hydra/` before any
+  hook can see the job's folder; there the app's refusal is the only one.)
+"""
+
+from __future__ import annotations
+
+import os
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+
+def register_resolvers() -> None:
+    OmegaConf.register_new_resolver("pid", lambda: os.getpid(), replace=True, use_cache=True)
+
+
+class RefuseTakenRunDir(Callback):
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        from geoloc.engine.distributed import launch_rank
+        from geoloc.launch.rundir import RunDirTaken, refuse_if_taken
+
+        if launch_rank() > 0:  # ranks > 0 run in a throwaway Hydra dir and write nothing
+            return
+        try:
+            refuse_if_taken(config.hydra.run.dir, ckpt=config.get("ckpt"))
+        except RunDirTaken as err:
+            # Hydra turns a callback's exception into a warning and goes on; SystemExit stops it (exit status 1)
+            raise SystemExit(f"RunDirTaken: {err}") from None
+
+
+register_resolvers()

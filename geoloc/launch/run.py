@@ -1,0 +1,59 @@
+"""What train.py and evaluate.py call: pick the task's runner and hand it the composed config.
+
+Tests call these functions directly with a config from `hydra.compose`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from geoloc.config import ConfigError
+from geoloc.engine import distributed as dist
+from geoloc.launch.rundir import claimed
+
+
+TASKS = ("crossview", "mmdip")  # packages under geoloc/tasks/, each with train(cfg, run_dir) and evaluate(cfg, state)
+
+
+def task_package(name: str | None):
+    """geoloc.tasks.<name>: every task package has the same two entry points."""
+    if name not in TASKS:
+        raise ConfigError(f"unknown task {name!r}; choose one of {', '.join(f'task={t}' for t in TASKS)}")
+    return importlib.import_module(f"geoloc.tasks.{name}")
+
+
+def train(cfg: DictConfig) -> dict:
+    """Train in `cfg.run_dir`, which the run owns while it lasts (geoloc/launch/rundir.py)."""
+    try:
+        package = task_package(cfg.task.name)
+        with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
+            return package.train(cfg, run_dir)
+    finally:
+        dist.cleanup()
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    """Score cfg.ckpt with the task that wrote it. Under Hydra its run dir (Hydra's log and config) is owned like a
+    training's, so a failed start leaves none; a config composed outside Hydra may have no run dir."""
+    from omegaconf import OmegaConf
+
+    from geoloc.engine import checkpoint
+
+    run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
+    with claimed(run_dir, ckpt=cfg.ckpt) if run_dir else contextlib.nullcontext():
+        refuse_existing_metrics_out(cfg)
+        state = checkpoint.load(cfg.ckpt)
+        stored = OmegaConf.create(state.get("config") or "{}")
+        return task_package(OmegaConf.select(stored, "task.name") or "crossview").evaluate(cfg, state)
+
+
+def refuse_existing_metrics_out(cfg: DictConfig) -> None:
+    """metrics_out= never replaces a file silently; checked before the evaluation, not after it."""
+    out = cfg.get("metrics_out")
+    if out and Path(out).exists() and not cfg.get("metrics_out_overwrite", False):
+        raise ConfigError(f"metrics_out={out} already exists; nothing was evaluated. Choose another file, or pass "
+                          f"metrics_out_overwrite=true to replace it.")

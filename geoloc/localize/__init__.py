@@ -1,5 +1,0 @@
-"""One image in, a position and a heading out (localize.py, `geoloc serve`)."""
-
-from geoloc.localize.localizer import Localizer, read_street
-
-__all__ = ["Localizer", "read_street"]

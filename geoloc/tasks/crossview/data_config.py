@@ -1,0 +1,79 @@
+"""The cross-view dataset section: the keys every dataset shares (CrossViewDataConfig), checked once; the reader's
+own keys (VIGOR's `setting`, the synthetic world's `preset`...) are checked against the reader's signature."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc import registry
+from geoloc.config import checked
+from geoloc.tasks.crossview.views import check_fov
+
+ALIGNMENTS = ("ipt", "polar", "none")
+
+
+@dataclass
+class CrossViewDataConfig:
+    """The keys every cross-view dataset shares (transforms, batches, checks). The dataset's own keys (e.g.
+    VIGOR's `setting`, the synthetic world's `preset`) go to its reader, registered under `name`
+    (geoloc/datasets/), which checks them against its signature."""
+
+    name: str = "synthetic"  # a registered reader: synthetic | cvusa | cvact | vigor | u1652 | a plug-in's
+    module: str | None = None  # a plug-in reader's module (docs/extending.md)
+    root: str | None = None  # null = the embedded synthetic data, for the readers that have it
+    split: str = "val"  # the split evaluate.py scores
+    val_split: str = "val"  # the split validated after each training epoch
+    alignment: str = "ipt"
+    aerial_size: int = 288  # the paper's 288x288 for both branches under IPT
+    pano_size: list[int] = field(default_factory=lambda: [112, 616])  # H, W for polar / none
+    batch_size: int = 64
+    val_batch_size: int = 0  # 0 = batch_size
+    rotation_deg: float = 0.0  # train: rotate the aerial-like query by U(-r, r) degrees (panorama column roll)
+    color_jitter: float = 0.0  # train: brightness/contrast/saturation jitter strength, 0 = off
+    joint_flip_rotate: bool = False  # train: flip / rotate by k*90° the aerial and the panorama consistently
+    fov: float = 360.0  # the street camera's field of view in degrees, (0, 360]; the rest of the canvas is 0
+    random_heading: bool = False  # train: the view at a random bearing; eval: unknown heading, searched
+    heading_steps: int = 36  # eval with random_heading: candidate headings 360·k/K per query (docs/heading.md)
+    check_files: str = "decode"  # decode | exists | off
+    max_train: int = 0  # 0 = all; for quick runs (one-to-one splits keep their pairs; others cut the queries)
+    max_val: int = 0
+
+    def __post_init__(self):
+        if self.alignment not in ALIGNMENTS:
+            raise ValueError(f"dataset.alignment must be one of {ALIGNMENTS}, got {self.alignment!r}")
+        if self.batch_size < 1:
+            raise ValueError(f"dataset.batch_size must be >= 1, got {self.batch_size}")
+        if self.aerial_size < 16 or len(self.pano_size) != 2 or min(self.pano_size) < 8:
+            raise ValueError(f"image sizes too small: aerial_size={self.aerial_size}, pano_size={self.pano_size}")
+        check_fov(self.fov, "dataset.fov")
+        if self.heading_steps < 1:
+            raise ValueError(f"dataset.heading_steps must be >= 1 (candidate headings per query), got "
+                             f"{self.heading_steps}")
+
+    @property
+    def limited_view(self) -> bool:
+        """Whether query views differ from the north-aligned full panorama (a narrower fov or a random heading)."""
+        return self.fov < 360.0 or self.random_heading
+
+
+SHARED_KEYS = tuple(f.name for f in fields(CrossViewDataConfig))
+
+
+def as_dict(section) -> dict:
+    """A dataset section as a plain dict: a DictConfig, a dict, or a CrossViewDataConfig (shared keys only)."""
+    if isinstance(section, CrossViewDataConfig):
+        return asdict(section)
+    return OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
+
+
+def shared_config(section) -> CrossViewDataConfig:
+    """The shared keys of a dataset section, checked; the reader's own keys are checked by read_split."""
+    params = as_dict(section)
+    return checked({k: v for k, v in params.items() if k in SHARED_KEYS}, CrossViewDataConfig, "dataset")
+
+
+def check_reader_keys(section) -> None:
+    """The reader's own keys against its signature, without reading anything (start-up checks)."""
+    registry.check("dataset", as_dict(section), exclude=SHARED_KEYS, runtime=("root", "split"))

@@ -1,0 +1,162 @@
+"""export.py format=onnx: the two encoders run in onnxruntime at any batch size and give torch's descriptors; the
+JSON's shapes are the ones the files take; existing files, other formats and other tasks are refused."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from geoloc.apps.export.onnx_export import export
+from geoloc.config import ConfigError, to_yaml
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.tasks.crossview.run import build_task
+from hydra import compose, initialize_config_dir
+
+from conftest import CONF, TINY, compose_train
+
+ort = pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+pytest.importorskip("onnxscript")
+
+
+def compose_export(overrides: list[str]):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("export", overrides=overrides)
+
+
+def write_checkpoint(path, overrides: list[str]):
+    """A checkpoint as the trainer writes it (the task's weights and the resolved config), untrained: export
+    needs no data, and any weights test the graph as well as trained ones."""
+    cfg = compose_train([*TINY, *overrides, f"run_dir={path.parent}"])
+    torch.manual_seed(0)
+    task = build_task(cfg)
+    ckpt_io.save_atomic({"task": task.state_dict(), "config": to_yaml(cfg), "epoch": 0}, path)
+    return task
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """(torch task, out dir, spec) of the TINY model (VGG16-BN + MSAE) under alignment=polar (both branches take
+    the 16x64 panorama shape) exported once, with the default out, over a stale encoders.json (overwrite=true).
+    One export for the whole module: each costs seconds."""
+    base = tmp_path_factory.mktemp("export")
+    task = write_checkpoint(base / "best.pt", ["dataset.alignment=polar"])
+    (base / "best_onnx").mkdir()
+    (base / "best_onnx" / "encoders.json").write_text("stale")
+    spec = export(compose_export([f"ckpt={base / 'best.pt'}", "overwrite=true"]))
+    return task.eval(), base / "best_onnx", spec
+
+
+def run_both(module, session, shape, batch):
+    x = torch.randn(batch, *shape, generator=torch.Generator().manual_seed(batch))
+    with torch.no_grad():
+        expected = module(x).numpy()
+    got = session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
+    return got, expected
+
+
+@pytest.mark.parametrize("branch", ["query", "reference"])
+def test_onnx_encoders_match_torch_at_two_batch_sizes(exported, branch):
+    task, out, spec = exported
+    entry = spec[branch]
+    session = ort.InferenceSession(str(out / entry["file"]), providers=["CPUExecutionProvider"])
+    assert session.get_inputs()[0].name == entry["input"]["name"] == "image"
+    shape = entry["input"]["shape"][1:]
+    assert shape == [3, 16, 64]  # polar: both branches take pano_size (H, W), and the file takes exactly that
+    module = getattr(task.model, branch)
+    for batch in (1, 5):  # the export's example batch was 2: other sizes prove the batch is dynamic
+        got, expected = run_both(module, session, shape, batch)
+        assert got.shape == (batch, entry["output"]["shape"][1]) == (batch, 16)
+        assert np.abs(got - expected).max() < 1e-4
+        assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)  # the JSON says l2_normalised
+    assert entry["output"]["l2_normalised"] is True
+    assert entry["checked_against_torch"]["max_abs_diff"] < 1e-4
+
+
+def test_spec_is_written_and_records_the_preprocessing(exported):
+    _, out, spec = exported
+    assert sorted(p.name for p in out.iterdir()) == ["encoders.json", "query.onnx", "reference.onnx"]
+    assert json.loads((out / "encoders.json").read_text()) == spec  # the stale file was replaced (overwrite=true)
+    assert spec["dataset"] == {"name": "cvusa", "alignment": "polar", "aerial_size": 32, "pano_size": [16, 64]}
+    assert spec["normalisation"]["channel_order"] == "RGB"
+    assert spec["normalisation"]["mean"] == pytest.approx([0.485, 0.456, 0.406])
+    assert spec["normalisation"]["std"] == pytest.approx([0.229, 0.224, 0.225])
+    assert any("aerial_to_polar" in step for step in spec["reference"]["preprocessing"]["steps"])
+    assert spec["source"]["ckpt"].endswith("best.pt")
+
+
+def test_existing_files_are_refused_unless_overwrite(exported):
+    _, out, _ = exported
+    ckpt = out.parent / "best.pt"
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    with pytest.raises(ConfigError, match=r"already holds query.onnx, reference.onnx, encoders.json.*overwrite=true"):
+        export(compose_export([f"ckpt={ckpt}"]))
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("alignment, view, query_hw, reference_hw", [
+    ("ipt", "panorama", (32, 32), (32, 32)),
+    ("ipt", "sphere", (32, 32), (32, 32)),
+    ("polar", "panorama", (16, 64), (16, 64)),
+    ("none", "panorama", (16, 64), (32, 32)),
+    ("none", "image", (32, 32), (32, 32)),  # University-1652's drone photos: the aerial branch's square size
+])
+def test_input_shapes_follow_the_data_module(alignment, view, query_hw, reference_hw):
+    """The JSON's shapes are the shapes geoloc.tasks.crossview.datasets makes from real images of each view."""
+    from geoloc.apps.export.input_spec import query_input, reference_input
+    from geoloc.tasks.crossview.data_config import CrossViewDataConfig
+    from geoloc.tasks.crossview.transforms import align_query, align_reference
+
+    cfg = CrossViewDataConfig(alignment=alignment, aerial_size=32, pano_size=[16, 64])
+    street = np.zeros((40 if view == "sphere" else 20, 120, 3), np.uint8)
+    assert query_input(cfg, view)[0] == query_hw == align_query(street, cfg, view).shape[:2]
+    assert reference_input(cfg)[0] == reference_hw == align_reference(np.zeros((50, 50, 3), np.uint8), cfg).shape[:2]
+
+
+def test_query_view_comes_from_the_reader_unless_given():
+    from geoloc.apps.export.input_spec import query_view_of
+
+    assert query_view_of("cvusa", "auto") == "panorama"
+    assert query_view_of("u1652", "auto") == "image"
+    assert query_view_of("vigor", None) == "sphere"
+    assert query_view_of("u1652", "panorama") == "panorama"
+    with pytest.raises(ValueError, match="query_view='drone' is not one of"):
+        query_view_of("cvusa", "drone")
+
+
+def test_other_formats_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match=r"format=torchscript is not supported.*format=onnx"):
+        export(compose_export([f"ckpt={tmp_path / 'none.pt'}", "format=torchscript"]))
+
+
+def test_mmdip_checkpoints_are_refused(tmp_path):
+    cfg = compose_train(["task=mmdip", f"run_dir={tmp_path}"])
+    ckpt_io.save_atomic({"task": {}, "config": to_yaml(cfg)}, tmp_path / "best.pt")
+    with pytest.raises(ConfigError, match=r"task=mmdip checkpoint.*cross-view"):
+        export(compose_export([f"ckpt={tmp_path / 'best.pt'}", f"out={tmp_path / 'onnx'}"]))
+    assert not (tmp_path / "onnx").exists()
+
+
+def test_a_failed_export_leaves_no_partial_file(tmp_path, monkeypatch):
+    """The files are written to a temp folder and moved in at the end: the reference branch failing after the
+    query branch was written leaves neither (nor the out folder the export created)."""
+    from geoloc.apps.export import onnx_export
+
+    write_checkpoint(tmp_path / "best.pt", [])
+    calls = []
+
+    def failing_second_branch(branch, example, path, opset):
+        calls.append(path.name)
+        if len(calls) == 2:
+            raise RuntimeError("the exporter failed")
+        path.write_bytes(b"a written query.onnx")
+        return 20
+
+    monkeypatch.setattr(onnx_export, "export_branch", failing_second_branch)
+    monkeypatch.setattr(onnx_export, "checked", lambda *args: None)
+    with pytest.raises(RuntimeError, match="the exporter failed"):
+        export(compose_export([f"ckpt={tmp_path / 'best.pt'}"]))
+    assert calls == ["query.onnx", "reference.onnx"]
+    assert not (tmp_path / "best_onnx").exists()

@@ -1,0 +1,156 @@
+"""The approximate FAISS gallery kinds (pq_refine, ivfpq_refine, hnsw) and gallery.kind in GalleryConfig."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from geoloc.config import ConfigError
+from geoloc.eval import GalleryIndex
+from geoloc.tasks.crossview.gallery import GalleryConfig, build_index
+
+faiss = pytest.importorskip("faiss")
+
+DIM = 32
+SMALL = dict(nlist=16, m=8, nprobe=8, k_factor=8, hnsw_m=16, ef_construction=40, ef_search=64)
+NEW_KINDS = ["pq_refine", "ivfpq_refine", "hnsw"]
+
+
+@pytest.fixture(autouse=True)
+def one_faiss_thread():
+    # One thread: a parallel HNSW build is not reproducible, and OpenMP on a busy shared CPU is slow.
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)
+    yield
+    faiss.omp_set_num_threads(before)
+
+
+def unit(x):
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def easy():
+    """5,000 references of intrinsic dimension 8 in 32-D; query i = reference i plus a little noise."""
+    rng = np.random.default_rng(0)
+    w = rng.standard_normal((8, DIM)).astype(np.float32)
+    z = rng.standard_normal((5000, 8)).astype(np.float32)
+    reference = unit(z @ w + 0.05 * rng.standard_normal((5000, DIM)).astype(np.float32))
+    query = unit((z[:300] + 0.2 * rng.standard_normal((300, 8)).astype(np.float32)) @ w)
+    return query.astype(np.float32), reference.astype(np.float32)
+
+
+def exact_top(query, reference, k):
+    sim = query.astype(np.float64) @ reference.astype(np.float64).T
+    return np.argsort(-sim, axis=1, kind="stable")[:, :k]
+
+
+def faiss_knobs(index: GalleryIndex) -> dict:
+    """The search knobs as the FAISS objects hold them (not as ``params`` says)."""
+    inner = faiss.downcast_index(index._index)
+    knobs = {}
+    if index.kind in ("pq_refine", "ivfpq_refine"):
+        knobs["k_factor"] = inner.k_factor
+        inner = faiss.downcast_index(inner.base_index)
+    if index.kind in ("ivfpq", "ivfpq_refine"):
+        knobs["nprobe"] = inner.nprobe
+    if index.kind == "hnsw":
+        knobs["ef_search"] = inner.hnsw.efSearch
+    return knobs
+
+
+@pytest.mark.parametrize("kind", NEW_KINDS)
+def test_new_kind_keeps_the_exact_top1_and_returns_exact_inner_products(easy, kind):
+    query, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind=kind, **SMALL).add(reference)
+    scores, rows = index.search(query, 10)
+    # Scores are the inner products of the unit descriptors of the rows returned (exact re-ranking / flat storage).
+    brute = np.einsum("qd,qkd->qk", query.astype(np.float64), reference[rows.numpy()].astype(np.float64))
+    np.testing.assert_allclose(scores.numpy(), brute, atol=1e-5)
+    assert (np.diff(scores.numpy(), axis=1) <= 1e-6).all()  # best first
+    top1_kept = np.mean(rows.numpy()[:, 0] == exact_top(query, reference, 1)[:, 0])
+    assert top1_kept >= 0.97, f"{kind} kept only {top1_kept:.3f} of the exact top-1"
+
+
+def test_refine_rescores_what_ivfpq_only_estimates(easy):
+    query, reference = easy
+    scores, rows = GalleryIndex(DIM, backend="faiss", kind="ivfpq", nbits=4, **SMALL).add(reference).search(query, 5)
+    brute = np.einsum("qd,qkd->qk", query, reference[rows.numpy()])
+    assert np.abs(scores.numpy() - brute).max() > 1e-3  # PQ estimates: the refine test above has teeth
+
+
+@pytest.mark.parametrize("kind", ["ivfpq", *NEW_KINDS])
+def test_save_load_round_trip_keeps_results_and_search_knobs(easy, tmp_path, kind):
+    query, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind=kind, nbits=4, **SMALL).add(reference)
+    index.set_search_params(nprobe=3, k_factor=2, ef_search=17)  # away from the defaults the loader starts from
+    before = index.search(query, 10)
+    index.save(tmp_path / "gallery.pt")
+    loaded = GalleryIndex.load(tmp_path / "gallery.pt")
+    assert loaded.params == index.params and loaded.kind == kind and len(loaded) == len(reference)
+    assert faiss_knobs(loaded) == faiss_knobs(index) != {}
+    after = loaded.search(query, 10)
+    torch.testing.assert_close(after[1], before[1])
+    torch.testing.assert_close(after[0], before[0])
+
+
+def test_search_knobs_reach_faiss_and_change_the_search(easy):
+    query, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind="ivfpq_refine", **SMALL).add(reference)
+    wide = index.search(query, 1)[1]
+    index.set_search_params(nprobe=1, k_factor=1)
+    assert faiss_knobs(index) == {"nprobe": 1, "k_factor": 1.0}
+    assert (index.search(query, 1)[1] != wide).any()
+    with pytest.raises(ValueError, match="nprobe, k_factor and ef_search"):
+        index.set_search_params(efSearch=10)
+    with pytest.raises(ValueError, match="k_factor=0"):
+        index.set_search_params(k_factor=0)
+
+
+def test_bad_kind_and_parameters_are_named():
+    with pytest.raises(ValueError, match="'annoy'"):
+        GalleryIndex(DIM, backend="faiss", kind="annoy")
+    with pytest.raises(ValueError, match="hnsw.*for torch"):
+        GalleryIndex(DIM, backend="torch", kind="hnsw")
+    with pytest.raises(ValueError, match="m .*divide dim, got dim=32, m=5"):
+        GalleryIndex(DIM, backend="faiss", kind="pq_refine", m=5)
+    with pytest.raises(ValueError, match="ef_search=0"):
+        GalleryIndex(DIM, backend="faiss", kind="hnsw", ef_search=0)
+    with pytest.raises(ValueError, match="k_factor=2.5"):
+        GalleryIndex(DIM, backend="faiss", kind="pq_refine", k_factor=2.5)
+
+
+def test_gallery_config_kind_auto_and_errors():
+    cfg = GalleryConfig()
+    assert cfg.kind == "auto"
+    assert cfg.resolved(cfg.auto_exact_below - 1) == ("torch", "flat")
+    assert cfg.resolved(cfg.auto_exact_below) == ("faiss", "pq_refine")
+    assert GalleryConfig(backend="faiss", kind="hnsw").resolved(10) == ("faiss", "hnsw")
+    with pytest.raises(ValueError, match="gallery.kind must be one of"):
+        GalleryConfig(kind="ivf")
+    with pytest.raises(ValueError, match="gallery.kind=pq_refine needs gallery.backend=faiss"):
+        GalleryConfig(kind="pq_refine")
+    with pytest.raises(ValueError, match="gallery.ef_search=0"):
+        GalleryConfig(backend="faiss", kind="hnsw", ef_search=0)
+
+
+def test_build_index_auto_switches_to_pq_refine_at_the_threshold(easy):
+    _, reference = easy
+    ref = torch.from_numpy(reference)
+    assert build_index(ref, GalleryConfig(auto_exact_below=5001)).kind == "flat"
+    index = build_index(ref, GalleryConfig(auto_exact_below=5000, m=8))
+    assert (index.backend, index.kind, len(index)) == ("faiss", "pq_refine", 5000)
+    with pytest.raises(ConfigError, match="gallery.m=5 .* divide the descriptor dim 32"):
+        build_index(ref, GalleryConfig(auto_exact_below=100, m=5))
+
+
+def test_query_blocks_give_the_one_call_result(easy, monkeypatch):
+    import geoloc.eval.gallery as gallery_mod
+
+    query, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind="pq_refine", **SMALL).add(reference)
+    whole = index.search(query, 10)
+    monkeypatch.setattr(gallery_mod, "_chunk_rows", lambda n_cols: 7)  # 300 queries in 43 calls
+    blocked = index.search(query, 10)
+    torch.testing.assert_close(blocked[1], whole[1])
+    torch.testing.assert_close(blocked[0], whole[0])

@@ -1,0 +1,151 @@
+"""Hydra multirun through hydra-submitit-launcher's local executor, the launcher configs, and the sweep table."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+from geoloc.engine import Trainer, TrainerConfig
+from hydra import compose, initialize_config_dir
+
+from conftest import CONF, REPO, TINY
+from toy_task import Points, ScriptedRecall
+
+sys.path.insert(0, str(REPO / "tools"))
+import aggregate_sweep  # noqa: E402
+
+needs_submitit = pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None,
+                                    reason="hydra-submitit-launcher is not installed")
+
+
+@needs_submitit
+def test_local_sweep_runs_two_jobs_and_the_table_gathers_them(tiny_cvusa, tmp_path):
+    sweep = tmp_path / "multirun"
+    cmd = [sys.executable, str(REPO / "train.py"), "-m", "hydra/launcher=submitit_local", *TINY,
+           f"dataset.root={tiny_cvusa}", "trainer.max_epochs=1", "seed=0,1", f"hydra.sweep.dir={sweep}",
+           "hydra.sweep.subdir=${hydra.job.num}", "hydra.launcher.timeout_min=5", "hydra.launcher.cpus_per_task=1"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for job in ("0", "1"):
+        lines = (sweep / job / "metrics.jsonl").read_text().splitlines()
+        assert any('"val/R@1"' in line for line in lines), job
+        assert (sweep / job / "last.pt").is_file()
+    text = aggregate_sweep.main([str(sweep)])
+    assert "| (base) | 2 |" in text  # the two seeds of one setting: one row, mean ± std
+
+
+@needs_submitit
+@pytest.mark.parametrize("launcher,target,tasks", [("slurm_gpu", "SlurmLauncher", 4), ("local_cpu", "LocalLauncher", 1),
+                                                   ("submitit_slurm", "SlurmLauncher", 1)])
+def test_launcher_configs_compose(launcher, target, tasks):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=[f"hydra/launcher={launcher}"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith(target)
+    assert cfg.hydra.launcher.tasks_per_node == tasks
+
+
+def _fake_run(root, name, overrides, records):
+    run = root / name
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_aggregate_takes_the_last_validation_and_averages_over_seeds(tmp_path, capsys):
+    root = tmp_path / "sweep"
+    shared = ["dataset.root=/data/cvusa"]
+    for seed, r1 in ((0, 0.5), (1, 0.7)):
+        _fake_run(root, f"{seed}_full", [*shared, "ablation=full", f"seed={seed}"], [
+            {"step": 1, "val/R@1": 0.0, "val/R@5": 0.1},
+            {"step": 2, "train/epoch_loss": 1.0},
+            {"step": 3, "val/R@1": r1, "val/R@5": 0.9},  # the last validation counts
+            {"step": 3, "train/epoch_loss": 0.5},
+        ])
+    _fake_run(root, "2_no_gms", [*shared, "ablation=no_gms", "seed=0"], [{"step": 3, "val/R@1": 0.25, "val/R@5": 0.5}])
+    _fake_run(root, "3_crashed", [*shared, "ablation=no_msae", "seed=0"], [{"step": 1, "train/loss": 2.0}])
+
+    groups = aggregate_sweep.group(aggregate_sweep.collect(root))
+    assert set(groups) == {"ablation=full", "ablation=no_gms"}  # no dataset.root, no seed; no val -> left out
+    assert [r["R@1"] for r in groups["ablation=full"]] == [0.5, 0.7]
+    text = aggregate_sweep.main([str(root), "--at", "last", "--out", str(tmp_path / "table.md")])
+    # epoch: the full runs' last validation ends their second epoch (1); no_gms stopped before its epoch row (0)
+    assert "| ablation=full | 2 | 1.00 ± 0.00 | 60.00 ± 14.14 | 90.00 ± 0.00 |" in text
+    assert "| ablation=no_gms | 1 | 0.00 | 25.00 | 50.00 |" in text
+    assert (tmp_path / "table.md").read_text().strip() == text
+    assert text.splitlines()[0] == "| run | seeds | epoch | R@1 | R@5 |"
+
+
+def _epochs(rows):
+    """metrics.jsonl rows as the trainer writes them: per epoch, a step row, the validation row (when given), then
+    the end-of-epoch row. `rows` is [(epoch, R@1, R@5) or (epoch, None, None) for an epoch without validation]."""
+    out = []
+    for epoch, r1, r5 in rows:
+        step = 10 * (epoch + 1)
+        out.append({"step": step, "time": 0.0, "train/loss": 0.7, "train/lr": 1e-3})
+        if r1 is not None:
+            out.append({"step": step, "time": 0.0, "val/R@1": r1, "val/R@5": r5, "val/reference_spread": 1.0})
+        out.append({"step": step, "time": 0.0, "train/epoch_loss": 0.7, "train/epoch_samples_per_s": 100.0,
+                    "train/epoch_epoch": epoch})
+    return out
+
+
+def _three_seeds(root):
+    for seed, rows in ((0, [(0, .10, .5), (1, .40, .8), (2, .30, .7), (3, .35, .9)]),
+                       (1, [(0, .20, .6), (1, .50, .7), (2, .50, .95), (3, .45, .9)])):  # a tie: epoch 1 counts
+        _fake_run(root, f"{seed}", ["ablation=full", f"seed={seed}"], _epochs(rows))
+    # seed 2 validates every 2nd epoch and was killed after validating epoch 3 (0.90, never checkpointed);
+    # the resumed run redid epoch 3 and validated it at 0.60
+    killed = _epochs([(0, None, None), (1, .20, .65), (2, None, None)])
+    killed.append({"step": 40, "time": 0.0, "val/R@1": .90, "val/R@5": .99})
+    _fake_run(root, "2", ["ablation=full", "seed=2"], killed + _epochs([(3, .60, .75)]))
+
+
+def test_validations_pair_each_record_with_its_epoch(tmp_path):
+    _three_seeds(tmp_path)
+    records = aggregate_sweep.validations(tmp_path / "2" / "metrics.jsonl")
+    assert [(r["epoch"], r["R@1"]) for r in records] == [(1, .20), (3, .60)]  # the killed attempt's 0.90 is gone
+    assert aggregate_sweep.pick(records, "best")["epoch"] == 3
+    tied = aggregate_sweep.validations(tmp_path / "1" / "metrics.jsonl")
+    assert aggregate_sweep.pick(tied, "best")["epoch"] == 1  # the earliest of equal R@1, as the trainer keeps
+    # a run resumed with ckpt= logs into a new run dir from the epoch after the checkpoint's
+    _fake_run(tmp_path, "resumed", ["seed=0"], _epochs([(4, .30, .70), (5, .20, .60)]))
+    resumed = aggregate_sweep.validations(tmp_path / "resumed" / "metrics.jsonl")
+    assert [(r["epoch"], r["R@1"]) for r in resumed] == [(4, .30), (5, .20)]
+
+
+def test_the_trainers_own_metrics_file_gives_each_validation_its_epoch(tmp_path):
+    cfg = TrainerConfig(max_epochs=5, val_every_n_epochs=2, device="cpu", progress=False, persistent_workers=False)
+    best = Trainer(cfg, tmp_path).fit(ScriptedRecall([0.2, 0.6, 0.4]), Points(), Points(), batch_size=2)
+    records = aggregate_sweep.validations(tmp_path / "metrics.jsonl")
+    assert [(r["epoch"], r["R@1"]) for r in records] == [(1, 0.2), (3, 0.6), (4, 0.4)]  # every 2nd epoch and the last
+    assert aggregate_sweep.pick(records, "best")["epoch"] == best["epoch"] == 3
+
+
+def test_both_tables_last_and_best_epoch_against_hand_computed_figures(tmp_path):
+    _three_seeds(tmp_path / "sweep")
+    text = aggregate_sweep.main([str(tmp_path / "sweep")])  # --at both is the default
+    last, best = text.split("\n\n### ")
+    assert last.splitlines()[0] == "### last epoch"
+    # last: epochs 3, 3, 3; R@1 .35 .45 .60: 46.67 ± sqrt(((-11.67)² + (-1.67)² + 13.33²) / 2) = 12.58 (sample std);
+    # R@5 .90 .90 .75: 85.00 ± sqrt((25 + 25 + 100) / 2) = 8.66
+    assert "| (base) | 3 | 3.00 ± 0.00 | 46.67 ± 12.58 | 85.00 ± 8.66 |" in last
+    assert best.splitlines()[0] == "best epoch (highest R@1 of each run)"
+    # best: epochs 1, 1, 3: 1.67 ± sqrt((0.44 + 0.44 + 1.78) / 2) = 1.15; R@1 .40 .50 .60: 50.00 ± 10.00;
+    # R@5 .80 .70 .75: 75.00 ± 5.00
+    assert "| (base) | 3 | 1.67 ± 1.15 | 50.00 ± 10.00 | 75.00 ± 5.00 |" in best
+    assert best.splitlines()[2] == "| run | seeds | epoch | R@1 | R@5 |"
+    only_best = aggregate_sweep.main([str(tmp_path / "sweep"), "--at", "best", "--metrics", "R@1"])
+    assert only_best.splitlines() == ["| run | seeds | epoch | R@1 |", "|---|---|---|---|",
+                                      "| (base) | 3 | 1.67 ± 1.15 | 50.00 ± 10.00 |"]
+
+
+def test_best_by_a_metric_the_runs_do_not_log_says_which_keys_they_have(tmp_path):
+    _three_seeds(tmp_path)
+    with pytest.raises(ValueError, match=r"no val/mAP.*'R@1', 'R@5'.*--monitor"):
+        aggregate_sweep.main([str(tmp_path), "--monitor", "mAP"])

@@ -1,0 +1,164 @@
+"""The two-branch VGG16 + MSAE network: shapes, independence of the branches, ablation head, weight loading."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+from geoloc.models import vgg as vgg_module
+from geoloc.models.msae import MSAEHead, PlainHead
+from geoloc.models.vgg import MissingWeightsError, VGG16Trunk
+from torchvision.models import vgg16
+
+from conftest import small_model
+
+
+def test_descriptors_are_l2_normalised_and_shaped():
+    model = small_model()
+    q, r = model(torch.randn(2, 3, 64, 64), torch.randn(2, 3, 64, 64))
+    assert q.shape == r.shape == (2, 32)
+    assert torch.allclose(q.norm(dim=1), torch.ones(2), atol=1e-5)
+    # a panorama-shaped query (alignment none/polar) also works
+    assert model.query(torch.randn(1, 3, 32, 160)).shape == (1, 32)
+
+
+def test_branches_share_no_weights():
+    model = small_model()
+    q_ids = {id(p) for p in model.query.parameters()}
+    assert not q_ids & {id(p) for p in model.reference.parameters()}
+
+
+def forced_mask(head, value: float):
+    """Hook that replaces the mask logits, so sigmoid gives exactly 1 (value=+1e4) or 0 (value=-1e4)."""
+    return head.to_mask.register_forward_hook(lambda module, args, out: torch.full_like(out, value))
+
+
+def msae_by_hand(head, taps):
+    """MSAE head written out step by step from the paper's description, with the head's own weights."""
+    size = taps[-1].shape[-2:]
+    x = torch.cat([F.adaptive_avg_pool2d(t, size) for t in taps], dim=1)
+    multi = torch.cat([F.relu(F.conv2d(x, c.weight, c.bias, padding=c.kernel_size[0] // 2)) for c in head.scales],
+                      dim=1)
+    assert [c.kernel_size[0] for c in head.scales] == [3, 5, 7]  # eq. 3: three receptive fields
+    mask = torch.sigmoid(F.conv2d(multi, head.to_mask.weight, head.to_mask.bias))
+    d = head.descriptor
+    pooled = F.adaptive_avg_pool2d(F.relu(F.conv2d(x * mask, d.proj.weight, d.proj.bias)), d.pool)
+    return F.normalize(F.linear(pooled.flatten(1), d.fc.weight, d.fc.bias), dim=1), mask
+
+
+def test_msae_head_matches_a_step_by_step_formulation():
+    torch.manual_seed(0)
+    head = MSAEHead([4, 6, 6], dim=16, scale_channels=5, proj_channels=3, pool=2)
+    taps = [torch.randn(2, 4, 16, 16), torch.randn(2, 6, 8, 8), torch.randn(2, 6, 4, 4)]
+    assert [c.kernel_size for c in (head.to_mask, head.descriptor.proj)] == [(1, 1), (1, 1)]  # 1x1 convolutions
+    desc, mask = head(taps, return_attention=True)
+    torch.testing.assert_close(head(taps), desc)  # the descriptor alone by default
+    expected_desc, expected_mask = msae_by_hand(head, taps)
+    torch.testing.assert_close(mask, expected_mask)
+    torch.testing.assert_close(desc, expected_desc)
+    # the mask is learned: gradients reach the attention convolutions, as they do by hand
+    weights = torch.randn_like(desc)
+    names, params = zip(*head.named_parameters())
+    got = dict(zip(names, torch.autograd.grad((desc * weights).sum(), params)))
+    expected = dict(zip(names, torch.autograd.grad((expected_desc * weights).sum(), params)))
+    for name in names:
+        torch.testing.assert_close(got[name], expected[name], msg=name)
+    assert got["to_mask.weight"].abs().sum() > 0 and got["scales.2.weight"].abs().sum() > 0
+
+
+def test_attention_mask_reweights_the_features():
+    model = small_model().eval()
+    x, other = torch.randn(1, 3, 64, 64), torch.randn(1, 3, 64, 64)
+    desc, mask = model.query(x, return_attention=True)
+    assert mask.shape == (1, 1, 4, 4) and (mask > 0).all() and (mask < 1).all() and mask.std() > 0
+    head = model.query.head
+    taps = model.query.trunk(x)
+    unweighted = head.descriptor(torch.cat([F.adaptive_avg_pool2d(t, (4, 4)) for t in taps], dim=1))
+    # the same input with the mask forced to one gives the descriptor of the unweighted features ...
+    handle = forced_mask(head, 1e4)
+    torch.testing.assert_close(model.query(x), unweighted)
+    handle.remove()
+    # ... which the real mask changes
+    assert (desc - unweighted).abs().max() > 1e-3
+    # with the mask forced to zero nothing of the image gets through: two inputs, one descriptor
+    handle = forced_mask(head, -1e4)
+    torch.testing.assert_close(model.query(x), model.query(other))
+    handle.remove()
+    torch.testing.assert_close(model.query(x), desc)  # the hooks are gone
+
+
+@pytest.mark.parametrize("head", [MSAEHead, PlainHead])
+def test_head_defaults_are_the_configs(head):
+    """The modules' defaults are the paper head's (conf/head/msae.yaml, fc.yaml)."""
+    import yaml
+
+    from conftest import CONF
+
+    built = head([4, 4, 4], dim=8)
+    cfg = yaml.safe_load((CONF / "head" / ("msae.yaml" if head is MSAEHead else "fc.yaml")).read_text())
+    assert built.descriptor.proj.out_channels == cfg["proj_channels"] and built.descriptor.pool == cfg["pool"]
+    if head is MSAEHead:
+        assert built.scales[0].out_channels == cfg["scale_channels"]
+
+
+def test_plain_head_codes_conv5_3_alone():
+    torch.manual_seed(0)
+    head = PlainHead([4, 6, 8], dim=16, proj_channels=3, pool=2)
+    taps = [torch.randn(2, 4, 16, 16), torch.randn(2, 6, 8, 8), torch.randn(2, 8, 4, 4)]
+    d = head.descriptor
+    assert d.proj.kernel_size == (1, 1)
+    pooled = F.adaptive_avg_pool2d(F.relu(F.conv2d(taps[-1], d.proj.weight, d.proj.bias)), 2)
+    expected = F.normalize(F.linear(pooled.flatten(1), d.fc.weight, d.fc.bias), dim=1)
+    torch.testing.assert_close(head(taps), expected)
+    desc, mask = head(taps, return_attention=True)  # figures draw a uniform mask for the ablation
+    torch.testing.assert_close(desc, expected)
+    assert torch.equal(mask, torch.ones(2, 1, 4, 4))
+
+
+def test_without_msae_the_head_is_plain():
+    model = small_model(msae=False)
+    assert not hasattr(model.query.head, "scales")
+    assert model.query(torch.randn(1, 3, 64, 64)).shape == (1, 32)
+
+
+def test_full_width_trunk_matches_vgg16_and_loads_a_local_state_dict(tmp_path):
+    reference = vgg16(weights=None)
+    path = tmp_path / "vgg16-local.pth"
+    torch.save(reference.state_dict(), path)
+    trunk = VGG16Trunk(width=1.0, pretrained=True, weights_path=str(path))
+    assert trunk.channels == [256, 512, 512]
+    for i, layer in enumerate(trunk.features):
+        if isinstance(layer, torch.nn.Conv2d):
+            assert torch.equal(layer.weight, reference.features[i].weight)
+    x = torch.randn(1, 3, 64, 64)
+    assert torch.allclose(trunk(x)[-1], reference.features[:30](x), atol=1e-5)
+
+
+def test_missing_imagenet_weights_say_where_to_put_them(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    with pytest.raises(MissingWeightsError, match=vgg_module.IMAGENET_FILE) as err:
+        VGG16Trunk(width=1.0, pretrained=True)
+    assert str(tmp_path / "hub" / "checkpoints") in str(err.value)
+    with pytest.raises(MissingWeightsError, match="does not exist"):
+        VGG16Trunk(width=1.0, pretrained=True, weights_path=str(tmp_path / "nope.pth"))
+
+
+def test_hub_cache_is_used_when_present(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
+    (tmp_path / "checkpoints").mkdir()
+    torch.save(vgg16(weights=None).state_dict(), tmp_path / "checkpoints" / vgg_module.IMAGENET_FILE)
+    VGG16Trunk(width=1.0, pretrained=True)
+
+
+def test_pretrained_needs_full_width():
+    with pytest.raises(ValueError, match="width=1.0"):
+        VGG16Trunk(width=0.5, pretrained=True)
+
+
+def test_batchnorm_trunk_taps_the_same_layers():
+    plain, bn = VGG16Trunk(width=0.125), VGG16Trunk(width=0.125, batchnorm=True)
+    assert plain.channels == bn.channels == [32, 64, 64]
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in bn.features)
+    x = torch.randn(2, 3, 64, 64)
+    assert [t.shape for t in plain(x)] == [t.shape for t in bn(x)] == [
+        (2, 32, 16, 16), (2, 64, 8, 8), (2, 64, 4, 4)]

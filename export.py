@@ -2,6 +2,8 @@
 [opset=N] [overwrite=true]. Writes query.onnx, reference.onnx and encoders.json (what each file expects)."""
 
 import hydra
+
+import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes every conf/ file extends)
 from omegaconf import DictConfig
 
 

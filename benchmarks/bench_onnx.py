@@ -31,16 +31,18 @@ def main() -> None:
     import onnxruntime
     from hydra import compose, initialize_config_dir
 
-    from geoloc.tasks.crossview.data_config import shared_config
+    from geoloc.tasks.crossview.data_config import parse_dataset
     from geoloc.apps.export.onnx_export import export_encoders
+    from geoloc.tasks.crossview.config import parse_training
     from geoloc.tasks.crossview.run import build_task
 
     torch.set_num_threads(args.threads)
     with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[*args.overrides, "run_dir=."])
     torch.manual_seed(0)
-    model = build_task(cfg).model.eval()
-    data_cfg = shared_config(cfg.dataset)
+    run = parse_training(cfg)
+    model = build_task(run.model, run.components, run.trainer.max_epochs).model.eval()
+    data_cfg = parse_dataset(cfg.dataset)[0]
     print(f"model: backbone={cfg.backbone.name} head={cfg.head.name} dim={cfg.model.dim} "
           f"alignment={data_cfg.alignment} aerial_size={data_cfg.aerial_size}; {args.threads} thread(s), "
           f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}")

@@ -33,7 +33,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from geoloc.config import checked  # noqa: E402
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig  # noqa: E402
+from geoloc.tasks.crossview.config import parse_training  # noqa: E402
+from geoloc.tasks.crossview.data_config import parse_dataset  # noqa: E402
 from geoloc.tasks.crossview.datasets import build  # noqa: E402
 from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
 from geoloc.tasks.crossview.run import build_task  # noqa: E402
@@ -62,7 +63,8 @@ def config(args, root: Path, run_dir: Path):
 
 def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
     seed_everything(0)
-    task = build_task(cfg).to(trainer.device)
+    run = parse_training(cfg)
+    task = build_task(run.model, run.components, run.trainer.max_epochs).to(trainer.device)
     if args.channels_last:
         task.to(memory_format=torch.channels_last)
     optimizer = task.configure_optimizers()[0][0]
@@ -127,7 +129,7 @@ def main(argv=None) -> dict:
     root = dataset_root(args)
     cfg = config(args, root, Path("/tmp/geoloc_bench/run"))
     trainer = Trainer(checked(cfg.trainer, TrainerConfig, "trainer"), "/tmp/geoloc_bench/run")
-    train_set = build(checked(cfg.dataset, CrossViewDataConfig, "dataset"), "train", train=True)
+    train_set = build(*parse_dataset(cfg.dataset), "train", train=True)
     print(f"device {trainer.device}, precision {args.precision}, channels_last {args.channels_last}, compile "
           f"{args.compile}, batch {args.batch}, workers {args.workers}, torch threads {torch.get_num_threads()}, "
           f"data {root} ({len(train_set)} pairs)", flush=True)

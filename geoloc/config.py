@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import Any, TypeVar
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 T = TypeVar("T")
@@ -35,3 +36,30 @@ def checked(section: DictConfig | dict | None, schema: type[T], where: str) -> T
 
 def to_yaml(cfg: Any) -> str:
     return OmegaConf.to_yaml(cfg, resolve=True)
+
+
+def top_level(cfg: DictConfig, schema: type[T], where: str) -> T:
+    """The fields of dataclass `schema` read from the top level of `cfg` (its other sections are left alone)."""
+    return checked({f.name: cfg[f.name] for f in fields(schema) if f.name in cfg}, schema, where)
+
+
+@dataclass
+class TrainKeys:
+    """train.py's own keys (the top level of conf/train.yaml)."""
+
+    seed: int = 0  # the run's seed: initialisation, sampling and augmentation (dataset.seed picks a synthetic world)
+    ckpt: str | None = None  # resume exactly from this last.pt, with the config stored in it
+    init_from: str | None = None  # a new run (epoch 0) from this checkpoint's network weights
+    figures: bool = True  # the task's pictures after training (cross-view: attention, top-5, recall curve)
+
+
+@dataclass
+class EvaluateKeys:
+    """evaluate.py's own keys (the top level of conf/evaluate.yaml)."""
+
+    ckpt: str = MISSING  # the checkpoint to score: a best.pt / last.pt written by train.py
+    metrics_out: str | None = None  # write the metrics as JSON to this file
+    metrics_out_overwrite: bool = False  # an existing metrics_out file is refused unless this is true
+    device: str = "auto"  # auto | cpu | cuda
+    num_workers: int = 0  # DataLoader workers
+    progress: bool = True

@@ -37,6 +37,16 @@ KINDS = {
     "optimizer": "optim",
     "segmenter": "task.segmentation",  # task=mmdip's phase-1 network, named by task.segmentation.model
 }
+#: the arguments geoloc passes a factory of each kind at run time (docs/extending.md); they are not config keys
+RUNTIME = {
+    "dataset": ("root", "split"),
+    "backbone": (),
+    "head": ("in_channels", "dim"),
+    "loss": ("dim",),
+    "optimizer": ("params", "max_epochs"),
+    "sampler": ("labels", "batch_size", "seed", "rank", "world_size", "neighbours"),
+    "segmenter": ("num_classes",),
+}
 # the key that names a component, where it is not <section>.name
 NAME_KEYS = {"segmenter": "task.segmentation.model"}
 # the modules that register geoloc's own components (imported on first lookup)

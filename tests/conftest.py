@@ -10,6 +10,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends, as the entry points store them)
+
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
 REALDATA = REPO.parent / "shared" / "realdata"

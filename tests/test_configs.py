@@ -6,12 +6,12 @@ import pytest
 from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig, shared_config
-from geoloc.tasks.crossview.datasets import read_split
-from geoloc.tasks.crossview.run import build_task
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
+
 from hydra.errors import MissingConfigException
 
 from conftest import CONF, compose_evaluate, compose_train
+from helpers.crossview_runs import split_of, task_of
 
 SMALL_NETWORK = ["backbone.width=0.125", "backbone.pretrained=false", "model.dim=32"]
 
@@ -29,7 +29,7 @@ def test_every_crossview_config_composes_and_builds(dataset, experiment, tmp_pat
     cfg = compose_train(overrides)
     if cfg.task.name != "crossview":
         pytest.skip("experiment for another task")
-    shared_config(cfg.dataset)
+    parse_dataset(cfg.dataset)[0]
     checked(cfg.trainer, TrainerConfig, "trainer")
     registry.check_arguments(registry.lookup("dataset", cfg.dataset.name),
                              {k: v for k, v in cfg.dataset.items() if k not in CrossViewDataConfig.__dataclass_fields__},
@@ -38,7 +38,7 @@ def test_every_crossview_config_composes_and_builds(dataset, experiment, tmp_pat
         thinner = (["backbone.width=0.125", "model.dim=64"] if cfg.backbone.name == "vgg16" else
                    ["backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"])
         cfg = compose_train([*overrides, "backbone.pretrained=false", *thinner])
-    build_task(cfg)
+    task_of(cfg)
 
 
 @pytest.mark.parametrize("group", ["backbone", "head", "loss", "optim", "sampler"])
@@ -46,7 +46,7 @@ def test_every_group_option_builds(group, tmp_path):
     for option in options(group):
         small = SMALL_NETWORK if group != "backbone" or option.startswith("vgg16") else [
             "backbone.pretrained=false", "backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"]
-        task = build_task(compose_train([f"{group}={option}", f"run_dir={tmp_path}", *small]))
+        task = task_of(compose_train([f"{group}={option}", f"run_dir={tmp_path}", *small]))
         task.configure_optimizers()
 
 
@@ -69,33 +69,33 @@ def test_unknown_dataset_is_refused():
 def test_typo_in_a_shared_dataset_key_is_refused():
     cfg = compose_train(["dataset=cvusa", "dataset.root=/x", "+dataset.batchsize=3"])
     with pytest.raises(ConfigError, match="batchsize"):
-        read_split(cfg.dataset, "train")
+        split_of(cfg.dataset, "train")
 
 
 def test_typo_in_a_reader_key_is_refused_before_anything_is_read(tmp_path):
     """VIGOR's own keys go to its reader, whose signature names the ones it takes; nothing is generated."""
     cfg = compose_train(["dataset=vigor", f"dataset.root={tmp_path / 'none'}", "+dataset.settting=cross_area"])
     with pytest.raises(ConfigError, match=r"dataset.settting is not an argument .* \[.*'setting'"):
-        read_split(cfg.dataset, "train")
+        split_of(cfg.dataset, "train")
     assert not (tmp_path / "none").exists()
 
 
 def test_batch_size_zero_is_refused():
     cfg = compose_train(["dataset.batch_size=0"])
     with pytest.raises(ConfigError, match="batch_size must be >= 1"):
-        shared_config(cfg.dataset)
+        parse_dataset(cfg.dataset)[0]
 
 
 def test_missing_root_is_refused():
     cfg = compose_train(["dataset=cvusa"])
     with pytest.raises(ConfigError, match="dataset.root"):
-        read_split(cfg.dataset, "train")
+        split_of(cfg.dataset, "train")
 
 
 def test_bad_alignment_and_precision_are_refused():
     cfg = compose_train(["dataset.alignment=upside_down", "trainer.precision=8"])
     with pytest.raises(ConfigError, match="alignment"):
-        shared_config(cfg.dataset)
+        parse_dataset(cfg.dataset)[0]
     with pytest.raises(ConfigError, match="precision"):
         checked(cfg.trainer, TrainerConfig, "trainer")
 
@@ -106,7 +106,7 @@ def test_an_unknown_name_is_refused_with_the_choices(group, name, tmp_path):
     """`loss.name=infonce` once trained the triplet loss without a word: each name is looked up, or refused."""
     cfg = compose_train([f"{group}.name={name}", f"run_dir={tmp_path}"])
     with pytest.raises(ConfigError, match=rf"{group}.name='{name}' is not a known .* choose one of \["):
-        build_task(cfg)
+        task_of(cfg)
 
 
 @pytest.mark.parametrize("override,key", [("+loss.margin=0.3", "loss.margin"), ("+head.heads=4", "head.heads"),
@@ -115,13 +115,13 @@ def test_an_unknown_name_is_refused_with_the_choices(group, name, tmp_path):
 def test_an_argument_the_component_does_not_take_is_refused(override, key, tmp_path):
     cfg = compose_train([override, f"run_dir={tmp_path}"])
     with pytest.raises(ConfigError, match=rf"{key} is not an argument of .*; its arguments are \["):
-        build_task(cfg)
+        task_of(cfg)
 
 
 def test_a_runtime_argument_cannot_be_set_from_config(tmp_path):
     cfg = compose_train(["+head.in_channels=[3]", f"run_dir={tmp_path}"])
     with pytest.raises(ConfigError, match="head.in_channels is set by geoloc at run time"):
-        build_task(cfg)
+        task_of(cfg)
 
 
 def test_ablations_apply_on_top_of_an_experiment(tmp_path):

@@ -18,9 +18,9 @@ import torch
 from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview.datasets import read_split
-from geoloc.tasks.crossview.run import build_task
 
 from conftest import REPO, compose_train, write_cvusa
+from helpers.crossview_runs import task_of
 
 PLUGINS = Path(__file__).parent / "plugins"
 SEARCHPATH = f"hydra.searchpath=[file://{PLUGINS / 'conf'}]"
@@ -67,7 +67,7 @@ def test_plugin_components_build_and_compute(tmp_path):
     cfg = plugin_cfg(root, tmp_path / "run")
     split = read_split(cfg.dataset, "val")
     assert split.num_queries == 6 and split.one_to_one and split.queries[0].parent.name == "street"
-    task = build_task(cfg)
+    task = task_of(cfg)
     assert type(task.model.query.trunk).__name__ == "TinyCNN" and type(task.model.query.head).__name__ == "MeanMaxHead"
     assert type(task.loss).__name__ == "MarginTriplet" and task.loss.margin == 0.2
     (opt,), scheds = task.configure_optimizers()
@@ -80,20 +80,20 @@ def test_a_plugin_with_a_wrong_argument_fails_at_start_up(tmp_path):
     cfg = compose_train([SEARCHPATH, "loss=margin_triplet", "+loss.margn=0.5", f"run_dir={tmp_path}"])
     with pytest.raises(ConfigError, match=r"loss.margn is not an argument of plugins.margin_triplet.margin_triplet; "
                                           r"its arguments are \['margin'\]"):
-        build_task(cfg)
+        task_of(cfg)
 
 
 def test_a_missing_plugin_module_is_named(tmp_path):
     cfg = compose_train([SEARCHPATH, "loss=margin_triplet", "loss.module=plugins.no_such_loss", f"run_dir={tmp_path}"])
     with pytest.raises(ConfigError, match="loss.module='plugins.no_such_loss' cannot be imported"):
-        build_task(cfg)
+        task_of(cfg)
 
 
 def test_a_plugin_given_as_a_file_path(tmp_path):
     """module: may be a path to a .py file instead of an importable module."""
     cfg = compose_train([SEARCHPATH, "head=mean_max", f"head.module={PLUGINS / 'mean_max.py'}", "backbone=tiny_cnn",
                          f"run_dir={tmp_path}", "model.dim=8"])
-    assert type(build_task(cfg).model.query.head).__name__ == "MeanMaxHead"
+    assert type(task_of(cfg).model.query.head).__name__ == "MeanMaxHead"
 
 
 @pytest.mark.slow

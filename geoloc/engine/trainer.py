@@ -32,12 +32,12 @@ from geoloc.engine.task import Task
 
 @dataclass
 class TrainerConfig:
-    max_epochs: int = 10
+    max_epochs: int = 100
     val_every_n_epochs: int = 1
     precision: str = "32"  # "32" | "bf16" | "16"; AMP applies on CUDA only
     grad_clip: float = 0.0  # max global grad norm; 0 = off
     accumulate: int = 1
-    num_workers: int = 0
+    num_workers: int = 4
     pin_memory: bool = True
     persistent_workers: bool = True
     device: str = "auto"  # "auto" | "cpu" | "cuda"

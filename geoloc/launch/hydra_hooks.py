@@ -1,5 +1,7 @@
-"""Hydra glue that acts before Hydra writes into a run dir.
+"""Hydra glue that acts before Hydra composes a config or writes into a run dir.
 
+- the schema nodes (geoloc/launch/schemas.py), stored when this module is imported (train.py, evaluate.py,
+  localize.py, export.py, and tests that compose configs): every config key's default, from its one home;
 - `${pid:}`, registered when this module is imported (train.py, evaluate.py): the process id, so default run dirs
   `outputs/<task>/<dataset>/<date>_<time>_<pid>` differ even for runs started in the same second. Cached like
   Hydra's `${now:}`, so a sweep job started by a launcher in another process resolves the sweep dir to the same
@@ -17,6 +19,8 @@ import os
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
+
+from geoloc.launch import schemas
 
 
 def register_resolvers() -> None:
@@ -38,3 +42,4 @@ class RefuseTakenRunDir(Callback):
 
 
 register_resolvers()
+schemas.register()

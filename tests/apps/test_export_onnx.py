@@ -11,10 +11,10 @@ import torch
 from geoloc.apps.export.onnx_export import export
 from geoloc.config import ConfigError, to_yaml
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.tasks.crossview.run import build_task
 from hydra import compose, initialize_config_dir
 
 from conftest import CONF, TINY, compose_train
+from helpers.crossview_runs import task_of
 
 ort = pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
@@ -31,7 +31,7 @@ def write_checkpoint(path, overrides: list[str]):
     needs no data, and any weights test the graph as well as trained ones."""
     cfg = compose_train([*TINY, *overrides, f"run_dir={path.parent}"])
     torch.manual_seed(0)
-    task = build_task(cfg)
+    task = task_of(cfg)
     ckpt_io.save_atomic({"task": task.state_dict(), "config": to_yaml(cfg), "epoch": 0}, path)
     return task
 

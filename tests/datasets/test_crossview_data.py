@@ -10,10 +10,11 @@ from geoloc.data.validate import DatasetFileError
 from geoloc.datasets.cvact import cvact_pairs
 from geoloc.datasets.cvusa import cvusa_pairs
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.datasets import build
+
 from geoloc.tasks.crossview.transforms import flip_rotate, load_view
 
 from conftest import REALDATA
+from helpers.crossview_runs import pairs_of
 from helpers.cvact_data import write_act_mat  # noqa: F401
 
 
@@ -33,16 +34,16 @@ def test_cvusa_split_rows_map_to_pano_and_aerial(tiny_cvusa):
 @pytest.mark.parametrize("alignment,q_shape,r_shape", [
     ("ipt", (3, 32, 32), (3, 32, 32)), ("polar", (3, 16, 64), (3, 16, 64)), ("none", (3, 16, 64), (3, 32, 32))])
 def test_alignment_switch_sets_the_shapes(tiny_cvusa, alignment, q_shape, r_shape):
-    ds = build(cfg(tiny_cvusa, alignment=alignment), "train", train=True)
+    ds = pairs_of(cfg(tiny_cvusa, alignment=alignment), "train", train=True)
     item = ds[(3, 0)]
     assert item["query"].shape == q_shape and item["reference"].shape == r_shape and item["index"] == 3
 
 
 def test_augmentation_is_a_function_of_seed_epoch_and_index(tiny_cvusa):
-    ds = build(cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3), "train", train=True)
+    ds = pairs_of(cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3), "train", train=True)
     assert torch.equal(ds[(2, 5)]["query"], ds[(2, 5)]["query"])
     assert not torch.equal(ds[(2, 5)]["query"], ds[(2, 6)]["query"])
-    val = build(cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3), "val", train=False)
+    val = pairs_of(cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3), "val", train=False)
     assert torch.equal(val[(2, 5)]["query"], val[(2, 6)]["query"])  # no augmentation at validation
 
 
@@ -50,7 +51,7 @@ def test_missing_and_broken_files_are_counted_and_named(tiny_cvusa):
     (tiny_cvusa / "bingmap/19/0000014.jpg").unlink()
     (tiny_cvusa / "streetview/panos/0000015.jpg").write_bytes(b"not a jpeg")
     with pytest.raises(DatasetFileError) as err:
-        build(cfg(tiny_cvusa), "val", train=False)
+        pairs_of(cfg(tiny_cvusa), "val", train=False)
     text = str(err.value)
     assert "2 of 16 files of split 'val'" in text and str(tiny_cvusa) in text
     assert "0000014.jpg (missing)" in text and "0000015.jpg (not an image: does not decode" in text
@@ -74,7 +75,7 @@ def test_cvact_indices_are_one_based(tmp_path):
 
 @pytest.mark.skipif(not (REALDATA / "cvusa_mini").is_dir(), reason="../shared/realdata not present")
 def test_real_cvusa_samples_load_and_transform():
-    ds = build(CrossViewDataConfig(name="cvusa", root=str(REALDATA / "cvusa_mini"), aerial_size=288),
+    ds = pairs_of(CrossViewDataConfig(name="cvusa", root=str(REALDATA / "cvusa_mini"), aerial_size=288),
                          "val", train=False)
     assert len(ds) >= 1
     item = ds[0]
@@ -88,7 +89,7 @@ def test_real_cvact_sample_loads_with_a_written_act_data_mat(tmp_path):
     root.mkdir()
     (root / "ANU_data_small").symlink_to(REALDATA / "cvact_mini" / "ANU_data_small")
     write_act_mat(root, ["sample01"], train=[1], val=[1])
-    ds = build(CrossViewDataConfig(name="cvact", root=str(root), aerial_size=128), "val", train=False)
+    ds = pairs_of(CrossViewDataConfig(name="cvact", root=str(root), aerial_size=128), "val", train=False)
     street = load_view(ds.split.queries[0], ds.split.query_view)
     full = cv2.imread(str(REALDATA / "cvact_mini/ANU_data_small/streetview/sample01_grdView.jpg"))
     assert street.shape[0] == full.shape[0] // 2  # the horizon band rows 208:624 of 832
@@ -114,7 +115,7 @@ def test_joint_flip_rotate_keeps_the_pair_geometrically_true(turns, flip):
 
 def test_augment_seed_changes_the_augmentation(tiny_cvusa):
     c = cfg(tiny_cvusa, rotation_deg=180, color_jitter=0.3)
-    seed0, seed1 = (build(c, "train", train=True, augment_seed=s) for s in (0, 1))
+    seed0, seed1 = (pairs_of(c, "train", train=True, augment_seed=s) for s in (0, 1))
     assert not torch.equal(seed0[(2, 5)]["query"], seed1[(2, 5)]["query"])
 
 
@@ -125,11 +126,11 @@ def test_the_runs_seed_reaches_init_sampling_and_augmentation(tiny_cvusa, tmp_pa
     from conftest import TINY, compose_train
 
     seen = {}
-    real_build = build
+    real_build = crossview_run.build
 
-    def spy_build(data_cfg, split, train, augment_seed=0):
+    def spy_build(data_cfg, reader, split, train, augment_seed=0):
         seen[split] = augment_seed
-        return real_build(data_cfg, split, train, augment_seed)
+        return real_build(data_cfg, reader, split, train, augment_seed)
 
     def no_fit(trainer, task, *args, **kwargs):
         seen["trainer_seed"] = trainer.cfg.seed

@@ -24,12 +24,11 @@ from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.launch import run
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.datasets import build
-from geoloc.tasks.crossview.run import build_task
+
 from torch.utils.data import default_collate
 
 from conftest import REPO, TINY, compose_evaluate, compose_train
+from helpers.crossview_runs import pairs_of, task_of
 
 BATCH = 4  # the global batch; each of 2 ranks gets BATCH // 2
 SGD_LR = 0.01  # moves the weights by up to ~0.04 a step: step 2 really runs on updated weights
@@ -51,7 +50,7 @@ def _join(rank: int, world: int, port: int) -> None:
 def _setup(root, run_dir):
     cfg = compose_train([*TINY, f"dataset.root={root}", f"run_dir={run_dir}", "loss.queue_size=8"])
     seed_everything(0)  # same weights on every rank and in the 1-process run
-    task = build_task(cfg)
+    task = task_of(cfg)
     signal_init(task)
     trainer = Trainer(checked(cfg.trainer, TrainerConfig, "trainer"), run_dir)
     return cfg, task, trainer
@@ -77,7 +76,7 @@ def _train_steps(rank, world, port, root, out_dir):
     if dist.is_dist():
         model = torch.nn.parallel.DistributedDataParallel(task, broadcast_buffers=False)
     optimizer = torch.optim.SGD(task.parameters(), lr=SGD_LR)  # see the module docstring: not Adam
-    dataset = build(checked(cfg.dataset, CrossViewDataConfig, "dataset"), "train", train=True)
+    dataset = pairs_of(cfg.dataset, "train", train=True)
     records = []
     for step in range(2):  # step 2's loss uses the queue filled by step 1
         full = default_collate([dataset[(i, 0)] for i in range(step * BATCH, (step + 1) * BATCH)])
@@ -101,7 +100,7 @@ def _train_steps(rank, world, port, root, out_dir):
 def _validate(rank, world, port, root, out_dir):
     _join(rank, world, port)
     cfg, task, trainer = _setup(root, out_dir / f"run{world}")
-    val_set = build(checked(cfg.dataset, CrossViewDataConfig, "dataset"), "val", train=False)
+    val_set = pairs_of(cfg.dataset, "val", train=False)
     loader = trainer.loader(val_set, 3, train=False)  # 8 items, batch 3: uneven shards and batches
     metrics = trainer.validate(task, loader)
     (out_dir / f"val_w{world}_r{rank}.json").write_text(json.dumps(metrics))

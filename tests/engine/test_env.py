@@ -49,7 +49,7 @@ def test_an_absent_package_is_none_and_shown_as_a_dash(monkeypatch):
 
 
 def test_fit_prints_the_environment_and_keeps_it_in_env_json_and_the_checkpoint(tmp_path, capsys):
-    cfg = TrainerConfig(max_epochs=1, device="cpu", progress=False, persistent_workers=False)
+    cfg = TrainerConfig(max_epochs=1, num_workers=0, device="cpu", progress=False, persistent_workers=False)
     Trainer(cfg, tmp_path).fit(ScriptedRecall(), Points(), None, batch_size=2)
     saved = json.loads((tmp_path / "env.json").read_text())
     assert saved == env_mod.environment()

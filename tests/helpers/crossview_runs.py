@@ -33,3 +33,39 @@ def train_until_killed(cfg, monkeypatch, global_step: int) -> None:
     with pytest.raises(KeyboardInterrupt):
         run.train(cfg)
     monkeypatch.setattr(CrossViewTask, "training_step", original)
+
+
+def task_of(cfg):
+    """The CrossViewTask a composed train config describes, as train.py builds it (parse, then build)."""
+    from geoloc.tasks.crossview.config import parse_training
+    from geoloc.tasks.crossview.run import build_task
+
+    run = parse_training(cfg)
+    return build_task(run.model, run.components, run.trainer.max_epochs)
+
+
+def pairs_of(section, split: str, train: bool, augment_seed: int = 0):
+    """CrossViewPairs of a dataset section (a DictConfig, dict or CrossViewDataConfig), parsed as a run parses it."""
+    from geoloc.tasks.crossview.data_config import parse_dataset
+    from geoloc.tasks.crossview.datasets import build
+
+    data, reader = parse_dataset(section)
+    return build(data, reader, split, train=train, augment_seed=augment_seed)
+
+
+def eval_data_of(section, split: str):
+    """The EvalData of a dataset section, parsed as a run parses it."""
+    from geoloc.tasks.crossview.data_config import parse_dataset
+    from geoloc.tasks.crossview.datasets import build_eval
+
+    data, reader = parse_dataset(section)
+    return build_eval(data, reader, split)
+
+
+def split_of(section, split: str):
+    """The RetrievalSplit of a dataset section, parsed as a run parses it."""
+    from geoloc.tasks.crossview.data_config import parse_dataset
+    from geoloc.tasks.crossview.datasets import read_split
+
+    data, reader = parse_dataset(section)
+    return read_split(data, reader, split)

@@ -11,9 +11,9 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import resume, run
-from geoloc.tasks.crossview.run import INIT_FROM_FRESH, build_task
+from geoloc.tasks.crossview.run import INIT_FROM_FRESH
 
-from helpers.crossview_runs import train_cfg, train_until_killed
+from helpers.crossview_runs import train_cfg, train_until_killed, task_of
 
 
 def test_config_differences_skip_only_the_allow_list():
@@ -56,7 +56,7 @@ def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(fini
 
     # the weights arrive; the GMS queue (the source data's places) starts empty
     cfg = train_cfg(root, tmp_path / "x")
-    task = build_task(cfg)
+    task = task_of(cfg)
     record = resume.init_from(task, source_path, fresh=INIT_FROM_FRESH)
     for key, value in task.state_dict().items():
         if not key.startswith("loss."):

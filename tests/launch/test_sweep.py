@@ -120,7 +120,8 @@ def test_validations_pair_each_record_with_its_epoch(tmp_path):
 
 
 def test_the_trainers_own_metrics_file_gives_each_validation_its_epoch(tmp_path):
-    cfg = TrainerConfig(max_epochs=5, val_every_n_epochs=2, device="cpu", progress=False, persistent_workers=False)
+    cfg = TrainerConfig(max_epochs=5, val_every_n_epochs=2, num_workers=0, device="cpu", progress=False,
+                        persistent_workers=False)
     best = Trainer(cfg, tmp_path).fit(ScriptedRecall([0.2, 0.6, 0.4]), Points(), Points(), batch_size=2)
     records = aggregate_sweep.validations(tmp_path / "metrics.jsonl")
     assert [(r["epoch"], r["R@1"]) for r in records] == [(1, 0.2), (3, 0.6), (4, 0.4)]  # every 2nd epoch and the last

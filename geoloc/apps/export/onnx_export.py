@@ -22,7 +22,7 @@ import torch
 from omegaconf import DictConfig
 
 from geoloc.config import ConfigError
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig, shared_config
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
 from geoloc.apps.export import input_spec
 
 FORMATS = ("onnx",)
@@ -49,7 +49,7 @@ def export(cfg: DictConfig) -> dict:
     from geoloc.tasks.crossview.run import load_checkpoint
 
     task, stored, state = load_checkpoint(ckpt, "export.py")
-    data_cfg = shared_config(stored.dataset)
+    data_cfg = parse_dataset(stored.dataset)[0]
     view = input_spec.query_view_of(data_cfg.name, cfg.get("query_view"))
     # the exporter's graph passes log each step at INFO, which Hydra's job logging would print
     for name in ("onnxscript", "onnx_ir"):

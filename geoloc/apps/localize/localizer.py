@@ -18,7 +18,7 @@ import torch
 
 from geoloc.config import ConfigError
 from geoloc.data.io import read_rgb
-from geoloc.tasks.crossview.data_config import shared_config
+from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.data.geo import distance_m
 from geoloc.tasks.crossview.heading import query_candidates, query_inputs
 from geoloc.tasks.crossview.views import check_fov
@@ -65,7 +65,7 @@ class Localizer:
                            "cpu" if device == "auto" else device)
         task.to(dev).eval()
         index = GalleryIndex.load(folder / "gallery.pt", device=dev)
-        return cls(task, shared_config(stored.dataset), index, places, {**info, "ckpt_loaded": str(ckpt)}, dev,
+        return cls(task, parse_dataset(stored.dataset)[0], index, places, {**info, "ckpt_loaded": str(ckpt)}, dev,
                    heading_steps)
 
     def info(self) -> dict:

@@ -31,7 +31,7 @@ class CrossViewDataConfig:
     batch_size: int = 64
     val_batch_size: int = 0  # 0 = batch_size
     rotation_deg: float = 0.0  # train: rotate the aerial-like query by U(-r, r) degrees (panorama column roll)
-    color_jitter: float = 0.0  # train: brightness/contrast/saturation jitter strength, 0 = off
+    color_jitter: float = 0.1  # train: brightness/contrast/saturation jitter strength, 0 = off
     joint_flip_rotate: bool = False  # train: flip / rotate by k*90° the aerial and the panorama consistently
     fov: float = 360.0  # the street camera's field of view in degrees, (0, 360]; the rest of the canvas is 0
     random_heading: bool = False  # train: the view at a random bearing; eval: unknown heading, searched
@@ -61,19 +61,14 @@ class CrossViewDataConfig:
 SHARED_KEYS = tuple(f.name for f in fields(CrossViewDataConfig))
 
 
-def as_dict(section) -> dict:
-    """A dataset section as a plain dict: a DictConfig, a dict, or a CrossViewDataConfig (shared keys only)."""
+def parse_dataset(section) -> tuple[CrossViewDataConfig, dict]:
+    """A dataset section (a DictConfig, a dict, or a CrossViewDataConfig whose reader takes its defaults) -> (its shared keys, checked, as a CrossViewDataConfig; the reader's section: `name`,
+    `module` and the reader's own keys, checked against the reader's signature). Nothing is read."""
     if isinstance(section, CrossViewDataConfig):
-        return asdict(section)
-    return OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
-
-
-def shared_config(section) -> CrossViewDataConfig:
-    """The shared keys of a dataset section, checked; the reader's own keys are checked by read_split."""
-    params = as_dict(section)
-    return checked({k: v for k, v in params.items() if k in SHARED_KEYS}, CrossViewDataConfig, "dataset")
-
-
-def check_reader_keys(section) -> None:
-    """The reader's own keys against its signature, without reading anything (start-up checks)."""
-    registry.check("dataset", as_dict(section), exclude=SHARED_KEYS, runtime=("root", "split"))
+        section = asdict(section)
+    params = OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
+    data = checked({k: v for k, v in params.items() if k in SHARED_KEYS}, CrossViewDataConfig, "dataset")
+    reader = {"name": data.name, "module": data.module,
+              **{k: v for k, v in params.items() if k not in SHARED_KEYS}}
+    registry.check("dataset", reader, runtime=registry.RUNTIME["dataset"])
+    return data, reader

@@ -15,7 +15,7 @@ from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.data.validate import check_files
 from geoloc.engine.sampling import item_rng, split_key
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig, SHARED_KEYS, as_dict, shared_config
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
 from geoloc.tasks.crossview.transforms import align, align_query, align_reference, load_view, to_tensor
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
@@ -23,10 +23,10 @@ from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
 
 
-def read_split(section, split: str) -> RetrievalSplit:
-    """The RetrievalSplit `split` of the dataset the section names, with the section's limits and file checks."""
-    cfg = shared_config(section)
-    out = registry.build("dataset", as_dict(section), exclude=SHARED_KEYS, root=cfg.root, split=split)
+def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalSplit:
+    """The RetrievalSplit `split` that the `reader` section (config.parse_dataset) names, with the dataset's limits
+    and file checks."""
+    out = registry.build("dataset", reader, root=cfg.root, split=split)
     if not isinstance(out, RetrievalSplit):
         raise TypeError(f"dataset {cfg.name!r}: its reader returned {type(out).__name__}, not a RetrievalSplit "
                         "(docs/extending.md)")
@@ -161,14 +161,14 @@ def known_heading(data: EvalData) -> EvalData:
     return replace(data, pairs=CrossViewPairs(data.split, data.pairs.cfg, train=False))
 
 
-def build(section, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
+def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
     """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too."""
-    return CrossViewPairs(read_split(section, split), shared_config(section), train=train, augment_seed=augment_seed)
+    return CrossViewPairs(read_split(cfg, reader, split), cfg, train=train, augment_seed=augment_seed)
 
 
-def build_eval(section, split: str) -> EvalData:
-    cfg = shared_config(section)
-    data = read_split(section, split)
+def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str) -> EvalData:
+    """What validation and evaluation read of `split`: its pairs (one-to-one) or its queries and gallery apart."""
+    data = read_split(cfg, reader, split)
     if data.one_to_one:
         return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading))
     if cfg.random_heading:

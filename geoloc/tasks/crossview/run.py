@@ -1,4 +1,4 @@
-"""Builds the cross-view run from a config: data, task, trainer (train) and from a checkpoint (evaluate)."""
+"""Builds the cross-view run from its parsed config: data, task, trainer (train) and from a checkpoint (evaluate)."""
 
 from __future__ import annotations
 
@@ -7,93 +7,97 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import ConfigError, checked, to_yaml
-from geoloc.tasks.crossview.data_config import SHARED_KEYS, check_reader_keys, shared_config
-from geoloc.tasks.crossview.datasets import build, build_eval, known_heading
+from geoloc.config import ConfigError, checked
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.launch import resume
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview import gallery
+from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
+                                           parse_evaluation, parse_training)
+from geoloc.tasks.crossview.datasets import build, build_eval, known_heading
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state
-from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.task import CrossViewTask
 
-# transform settings that must match what the network was trained on; evaluate always takes them from the ckpt.
-# The view's field of view and heading (fov, random_heading, heading_steps) are not among them: they are the test
-# condition, and evaluate.py may set them (conf/evaluate.yaml).
-TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
 # what an init_from= run does not take from its source: the loss's state (the GMS queue holds the source data's
 # places and descriptors; a learned temperature starts again)
 INIT_FROM_FRESH = ("loss.",)
 
 
-def build_task(cfg: DictConfig) -> CrossViewTask:
-    """Every component from its config group; a bad name or argument fails here, before any data is read."""
-    return CrossViewTask(checked(cfg.model, CrossViewModelConfig, "model"), cfg.backbone, cfg.head, cfg.loss,
-                         cfg.optim, cfg.get("sampler"), max_epochs=int(cfg.trainer.max_epochs))
+def build_task(model: CrossViewModelConfig, components: Components, max_epochs: int) -> CrossViewTask:
+    """Every component from its config section; a bad name or argument fails here, before any data is read."""
+    return CrossViewTask(model, components.backbone, components.head, components.loss, components.optim,
+                         components.sampler, max_epochs=max_epochs)
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
-    shared_config(cfg.dataset)  # bad dataset keys fail here, before anything is read or generated
-    check_reader_keys(cfg.dataset)
-    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
-    if cfg.get("ckpt"):
+    """train.py's work: parse the config once, then train (`fit`)."""
+    run = parse_training(cfg)
+    if run.job.ckpt:
         resume.checked_resume(cfg)  # before any data is generated or checked
-    seed_everything(trainer_cfg.seed)
-    task = build_task(cfg)
+    return fit(run, Path(run_dir))
+
+
+def fit(run: CrossViewTraining, run_dir: Path) -> dict:
+    seed_everything(run.trainer.seed)
+    task = build_task(run.model, run.components, run.trainer.max_epochs)
     source = None
-    if cfg.get("init_from"):
-        source = resume.init_from(task, cfg.init_from, fresh=INIT_FROM_FRESH)
-    data_cfg = shared_config(cfg.dataset)
-    train_set = build(cfg.dataset, "train", train=True, augment_seed=trainer_cfg.seed)
-    val_set = build_eval(cfg.dataset, data_cfg.val_split)
-    trainer = Trainer(trainer_cfg, run_dir, to_yaml(cfg))
+    if run.job.init_from:
+        source = resume.init_from(task, run.job.init_from, fresh=INIT_FROM_FRESH)
+    train_set = build(run.data, run.reader, "train", train=True, augment_seed=run.trainer.seed)
+    val_set = build_eval(run.data, run.reader, run.data.val_split)
+    task.validate_on(val_set.split)
+    trainer = Trainer(run.trainer, run_dir, run.yaml)
     if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
         resume.write_source(run_dir, source)
     trainer.init_from = source
-    best = trainer.fit(task, train_set, val_set, batch_size=data_cfg.batch_size,
-                       val_batch_size=data_cfg.val_batch_size or None, resume=cfg.get("ckpt"))
+    best = trainer.fit(task, train_set, val_set, batch_size=run.data.batch_size,
+                       val_batch_size=run.data.val_batch_size or None, resume=run.job.ckpt)
     if dist.is_main():
         print_table(best, f"best validation (epoch {best.get('epoch')}), {len(val_set)} queries, {val_set.split.name}")
         print(f"checkpoints: {run_dir / 'best.pt'}  {run_dir / 'last.pt'}")
-        if cfg.get("figures", True) and (run_dir / "best.pt").is_file():
+        if run.job.figures and (run_dir / "best.pt").is_file():
             from geoloc.tasks.crossview.figures import crossview_figures
 
             state = ckpt_io.load(run_dir / "best.pt")
             ckpt_io.load_task_state(task, state, run_dir / "best.pt")
             crossview_figures(task, known_heading(val_set), run_dir, trainer.device,
-                              data_cfg.val_batch_size or data_cfg.batch_size)
+                              run.data.val_batch_size or run.data.batch_size)
     return best
 
 
 def evaluate(cfg: DictConfig, state: dict) -> dict:
-    """Rebuild model and transforms from the checkpoint's config, score a split, write `metrics_out`."""
-    task, stored = restored_task(state, cfg.ckpt)
-    data_section = merged_dataset(stored.dataset, cfg.get("dataset"))
-    data_cfg = shared_config(data_section)
-    eval_data = build_eval(data_section, data_cfg.split)
-    trainer = Trainer(TrainerConfig(device=cfg.get("device", "auto"), num_workers=cfg.get("num_workers", 0),
-                                    progress=cfg.get("progress", True)), run_dir=cfg.get("run_dir", "."))
+    """evaluate.py's work: rebuild model and transforms from the checkpoint's config, score a split, write
+    `metrics_out`."""
+    stored = stored_config(state)
+    run = parse_evaluation(cfg, stored)
+    task = with_weights(build_task(run.model, run.components, _max_epochs(stored)), state, run.job.ckpt)
+    return score(run, task)
+
+
+def score(run: CrossViewEvaluation, task: CrossViewTask) -> dict:
+    eval_data = build_eval(run.data, run.reader, run.data.split)
+    task.validate_on(eval_data.split)
+    trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress),
+                      run_dir=run.run_dir or ".")
     task.to(trainer.device)
-    batch_size = data_cfg.val_batch_size or data_cfg.batch_size
-    gallery_cfg = checked(cfg.get("gallery") or {}, GalleryConfig, "gallery")
-    if gallery_cfg.save or gallery_cfg.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
-        if data_cfg.random_heading:
+    if run.gallery.save or run.gallery.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
+        if run.data.random_heading:
             raise ConfigError("gallery.save / gallery.load encode each query once, at its known heading; with "
                               "dataset.random_heading=true (K candidate headings per query) evaluate without gallery.*")
-        meta = {"ckpt": str(Path(cfg.ckpt).resolve()), "dataset": f"{data_cfg.name} {data_cfg.split} {data_cfg.root}",
+        meta = {"ckpt": str(Path(run.job.ckpt).resolve()),
+                "dataset": f"{run.data.name} {run.data.split} {run.data.root}",
                 "model_fingerprint": ckpt_io.weights_fingerprint(task.model)}
-        metrics = gallery.evaluate(task, trainer.engine, eval_data, batch_size, gallery_cfg, meta)
+        metrics = gallery.evaluate(task, trainer.engine, eval_data, run.batch_size, run.gallery, meta)
     else:
-        metrics = trainer.validate(task, task.val_dataloaders(eval_data, batch_size, trainer.engine))
+        metrics = trainer.validate(task, task.val_dataloaders(eval_data, run.batch_size, trainer.engine))
     metrics["num_queries"] = len(eval_data)
     metrics.setdefault("num_references", eval_data.split.num_references)
     if dist.is_main():
-        print_table(metrics, f"{eval_data.split.name} ({len(eval_data)} queries), ckpt {cfg.ckpt}")
-        if cfg.get("metrics_out"):
-            out = Path(cfg.metrics_out)
+        print_table(metrics, f"{eval_data.split.name} ({len(eval_data)} queries), ckpt {run.job.ckpt}")
+        if run.job.metrics_out:
+            out = Path(run.job.metrics_out)
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
@@ -107,36 +111,34 @@ def load_checkpoint(ckpt, use: str) -> tuple[CrossViewTask, DictConfig, dict]:
     if task_name != "crossview":
         raise ConfigError(f"ckpt={ckpt} is a task={task_name} checkpoint; {use} takes cross-view checkpoints "
                           "(task=crossview) only")
-    task, stored = restored_task(state, ckpt)
-    return task, stored, state
+    stored = stored_config(state)
+    return restored_task(state, ckpt, stored), stored, state
 
 
-def restored_task(state: dict, ckpt) -> tuple[CrossViewTask, DictConfig]:
-    """The task a checkpoint's config describes, with the checkpoint's weights, on the CPU, and that config (older
-    layouts upgraded: geoloc/tasks/crossview/legacy.py). `ckpt` names the file in errors. Used by evaluate, export
-    and localize."""
+def stored_config(state: dict) -> DictConfig:
+    """A checkpoint's config in today's layout (older layouts upgraded: legacy.py)."""
     stored = OmegaConf.create(state["config"])
-    if is_old_layout(stored):
-        stored, state = upgraded_config(stored), {**state, "task": upgraded_state(state["task"])}
-    task = build_task(stored)
+    return upgraded_config(stored) if is_old_layout(stored) else stored
+
+
+def restored_task(state: dict, ckpt, stored: DictConfig) -> CrossViewTask:
+    """The task `stored` (the checkpoint's config, stored_config) describes, with the checkpoint's weights, on the
+    CPU. `ckpt` names the file in errors. Used by export and localize."""
+    model = checked(stored.model, CrossViewModelConfig, "model")
+    return with_weights(build_task(model, parse_components(stored), _max_epochs(stored)), state, ckpt)
+
+
+def with_weights(task: CrossViewTask, state: dict, ckpt) -> CrossViewTask:
+    """`task` with checkpoint `state`'s weights (older layouts' names upgraded: legacy.py)."""
+    if is_old_layout(OmegaConf.create(state["config"])):
+        state = {**state, "task": upgraded_state(state["task"])}
     ckpt_io.load_task_state(task, state, ckpt, hint="Was it written by another task or an edited config? "
                             "Use it with the config it was trained with.")
-    return task, stored
+    return task
 
 
-def merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:
-    """The stored dataset config, overlaid with what the user asked for at evaluation (name, root, split...),
-    except the transform keys, which must stay as trained. Another dataset keeps only the shared keys of the
-    stored one: its reader's own keys come from the request (or the reader's defaults)."""
-    section = OmegaConf.to_container(stored, resolve=True)
-    overlay = OmegaConf.to_container(requested, resolve=True) if requested else {}
-    if overlay.get("name") not in (None, section.get("name")):
-        section = {k: v for k, v in section.items() if k in SHARED_KEYS and k != "module"}
-        section["root"] = None  # another dataset never inherits the trained one's root
-    for key, value in overlay.items():
-        if value is not None and key not in TRANSFORM_KEYS:
-            section[key] = value
-    return OmegaConf.create(section)
+def _max_epochs(stored: DictConfig) -> int:
+    return int(OmegaConf.select(stored, "trainer.max_epochs") or 1)
 
 
 def print_table(metrics: dict, title: str) -> None:

@@ -41,7 +41,7 @@ class CrossViewTask(Task):
         registry.check("sampler", self.sampler_section,
                        runtime=("labels", "batch_size", "seed", "rank", "world_size", "neighbours"))
         self.sampler = None
-        self.split = None  # the validation RetrievalSplit, for metrics beyond one-to-one
+        self.split = None  # the RetrievalSplit validation scores (validate_on): its relevance and views
 
     # ---- optimisation --------------------------------------------------------------------------------------
     def configure_optimizers(self):
@@ -86,9 +86,13 @@ class CrossViewTask(Task):
             self.loss.on_train_batch_end()
 
     # ---- validation ----------------------------------------------------------------------------------------
+    def validate_on(self, split) -> None:
+        """The RetrievalSplit that validation scores: which references are relevant to which query, and which
+        branch encodes its queries. The runner sets it once the split is read."""
+        self.split = split
+
     def val_dataloaders(self, data, batch_size, engine):
         """One-to-one splits: one loader of pairs. Others: the queries and the gallery apart."""
-        self.split = data.split
         if data.pairs is not None:
             return engine.loader(data.pairs, batch_size, train=False)
         return {"query": engine.loader(data.queries, batch_size, train=False),

@@ -13,6 +13,7 @@ from geoloc.synthetic import generate
 from omegaconf import OmegaConf
 
 from conftest import TINY, compose_evaluate, compose_train
+from helpers.crossview_runs import split_of
 
 SMALL = [t for t in TINY if not t.startswith("dataset=")] + ["dataset.check_files=exists"]
 
@@ -92,11 +93,11 @@ def test_u1652_trains_and_scores_both_directions_with_ap(u1652_root, tmp_path):
 
 def test_photo_queries_refuse_polar_alignment(u1652_root, tmp_path):
     from geoloc.config import ConfigError
-    from geoloc.tasks.crossview.datasets import read_split
+    
 
     cfg = compose_train([*SMALL, "dataset=u1652", f"dataset.root={u1652_root}", "dataset.alignment=ipt"])
     with pytest.raises(ConfigError, match="photo queries .* dataset.alignment=none"):
-        read_split(cfg.dataset, "train")
+        split_of(cfg.dataset, "train")
 
 
 @pytest.mark.slow
@@ -183,9 +184,9 @@ def test_embedded_datasets_render_into_the_cache_when_root_is_null(name, layout,
 
             dataset_root(checked(compose_train(["task=mmdip"]).dataset, DynamicDataConfig, "dataset"))
         else:
-            from geoloc.tasks.crossview.datasets import read_split
+            
 
-            read_split(compose_train([f"dataset={name}"]).dataset, "train")
+            split_of(compose_train([f"dataset={name}"]).dataset, "train")
     assert asked[0][0] == layout and str(asked[0][1]).startswith(str(tmp_path / "synthetic"))
 
 

@@ -17,7 +17,7 @@ from geoloc.launch import run
 from geoloc.registry import register
 from geoloc.tasks.crossview import heading as heading_eval
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.datasets import ViewImages, build, build_eval
+from geoloc.tasks.crossview.datasets import ViewImages
 from geoloc.tasks.crossview.heading import heading_metrics, heading_search
 from geoloc.tasks.crossview.task import CrossViewTask
 from geoloc.tasks.crossview.transforms import (
@@ -30,6 +30,7 @@ from geoloc.tasks.crossview.views import circular_error_deg, eval_heading, north
 from torch import nn
 
 from conftest import TINY, compose_evaluate, compose_train, write_cvusa
+from helpers.crossview_runs import pairs_of, eval_data_of
 
 
 def unit(x: torch.Tensor) -> torch.Tensor:
@@ -94,7 +95,7 @@ def test_a_shift_covariant_encoder_finds_the_heading_to_the_column(tmp_path, fov
     root = write_polar_pairs(tmp_path / "cvusa", n=6)
     cfg = CrossViewDataConfig(name="cvusa", root=str(root), alignment="polar", aerial_size=64, pano_size=[16, 64],
                               fov=fov, random_heading=True, heading_steps=64)  # one candidate per column
-    data = build_eval(cfg, "val")
+    data = eval_data_of(cfg, "val")
     task = CrossViewTask.__new__(CrossViewTask)
     nn.Module.__init__(task)
     task.model = nn.Module()
@@ -119,13 +120,13 @@ def tiny_cfg(root, **kw):
 def test_training_sees_the_window_at_north_or_at_a_random_bearing(tiny_cvusa):
     pano = read_rgb(tiny_cvusa / "streetview/panos/0000004.jpg")
     north = to_tensor(align_query(north_window(pano, 90, 0.0), tiny_cfg(tiny_cvusa)))
-    known = build(tiny_cfg(tiny_cvusa, fov=90), "train", train=True)
+    known = pairs_of(tiny_cfg(tiny_cvusa, fov=90), "train", train=True)
     assert torch.equal(known[(3, 0)]["query"], north)
-    assert torch.equal(build(tiny_cfg(tiny_cvusa, fov=90), "train", train=False)[3]["query"], north)
+    assert torch.equal(pairs_of(tiny_cfg(tiny_cvusa, fov=90), "train", train=False)[3]["query"], north)
     queries = ViewImages([tiny_cvusa / "streetview/panos/0000004.jpg"], "panorama",
                                    tiny_cfg(tiny_cvusa, fov=90))
     assert torch.equal(queries[0]["image"], north)  # galleries apart from the queries (VIGOR) see them at north too
-    random = build(tiny_cfg(tiny_cvusa, fov=90, random_heading=True), "train", train=True)
+    random = pairs_of(tiny_cfg(tiny_cvusa, fov=90, random_heading=True), "train", train=True)
     heading = float(np.random.default_rng((0, 0, 3)).uniform(0, 360))  # the item's augmentation RNG, first draw
     assert torch.equal(random[(3, 0)]["query"], to_tensor(align_query(north_window(pano, 90, heading),
                                                                        tiny_cfg(tiny_cvusa))))
@@ -135,8 +136,8 @@ def test_training_sees_the_window_at_north_or_at_a_random_bearing(tiny_cvusa):
 def test_a_full_view_trains_exactly_as_before_with_or_without_random_heading(tiny_cvusa):
     """fov 360 shows the whole north-aligned canvas: no RNG draw, so the default run's numerics stay identical."""
     kw = dict(rotation_deg=20, color_jitter=0.3, joint_flip_rotate=True)
-    plain = build(tiny_cfg(tiny_cvusa, **kw), "train", train=True)
-    heading = build(tiny_cfg(tiny_cvusa, random_heading=True, **kw), "train", train=True)
+    plain = pairs_of(tiny_cfg(tiny_cvusa, **kw), "train", train=True)
+    heading = pairs_of(tiny_cfg(tiny_cvusa, random_heading=True, **kw), "train", train=True)
     for key in [(0, 0), (5, 3)]:
         assert torch.equal(plain[key]["query"], heading[key]["query"])
         assert torch.equal(plain[key]["reference"], heading[key]["reference"])
@@ -180,7 +181,7 @@ def test_bad_heading_settings_say_what_to_do(tiny_cvusa, overrides, match):
     section = {"name": "heading_test_split", "root": str(tiny_cvusa), "aerial_size": 32, "pano_size": [16, 64],
                **overrides}
     with pytest.raises(ConfigError, match=match):
-        build_eval(section, "val")
+        eval_data_of(section, "val")
 
 
 def test_bad_heading_settings_fail_at_start(tmp_path):

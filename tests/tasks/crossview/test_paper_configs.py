@@ -17,8 +17,8 @@ from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.synthetic.config import resolve
-from geoloc.tasks.crossview.data_config import check_reader_keys, shared_config
-from geoloc.tasks.crossview.datasets import build
+from geoloc.tasks.crossview.data_config import parse_dataset
+
 from geoloc.tasks.mmdip.config import GENERATOR_LOSS_WEIGHTS
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.pipeline import parse
@@ -26,6 +26,7 @@ from geoloc.tasks.mmdip.segmentation import SegmentationTask
 from omegaconf import OmegaConf
 
 from conftest import compose_train, write_cvusa
+from helpers.crossview_runs import pairs_of
 
 CROSSVIEW = {"paper_cvusa": "cvusa", "paper_cvact": "cvact"}
 FRACTIONS = [0.05, 0.3, 0.05, 0.1, 0.02, 0.3, 0.1, 0.08]
@@ -35,10 +36,9 @@ def crossview_sections(experiment: str, root, overrides=()) -> dict:
     """The experiment's groups as the cross-view runner reads them (unknown keys and bad values fail)."""
     cfg = compose_train([f"experiment={experiment}", f"dataset.root={root}", f"run_dir={root}", *overrides])
     plain = lambda section: OmegaConf.create(OmegaConf.to_container(section, resolve=True))  # noqa: E731
-    check_reader_keys(cfg.dataset)
     registry.check("loss", cfg.loss, runtime=("dim",))
     registry.check("optimizer", cfg.optim, runtime=("params", "max_epochs"))
-    return {"dataset": shared_config(cfg.dataset), "model": checked(cfg.model, CrossViewModelConfig, "model"),
+    return {"dataset": parse_dataset(cfg.dataset)[0], "model": checked(cfg.model, CrossViewModelConfig, "model"),
             "backbone": plain(cfg.backbone), "head": plain(cfg.head), "loss": plain(cfg.loss),
             "optim": plain(cfg.optim), "sampler": plain(cfg.sampler),
             "trainer": checked(cfg.trainer, TrainerConfig, "trainer")}
@@ -80,7 +80,7 @@ def test_crossview_paper_schedule_divides_lr_by_10_at_epoch_80(experiment, tmp_p
 def test_paper_cvusa_augmentation_rotates_the_query_only(tmp_path):
     root = write_cvusa(tmp_path / "cvusa", n_train=2, n_val=1)
     cfg = crossview_sections("paper_cvusa", root)["dataset"]
-    pairs = build(cfg, "train", train=True, augment_seed=0)
+    pairs = pairs_of(cfg, "train", train=True, augment_seed=0)
     first, later = pairs[(0, 0)], pairs[(0, 1)]  # one place in two epochs: two draws of the augmentation
     assert first["query"].shape == first["reference"].shape == (3, 288, 288)
     assert not torch.equal(first["query"], later["query"])  # rotation on

@@ -9,13 +9,12 @@ import torch
 from geoloc.engine import NonFiniteLossError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import run
-from geoloc.tasks.crossview import run as crossview_run
-from geoloc.tasks.crossview.datasets import build
+
 from geoloc.tasks.crossview.task import CrossViewTask
 from omegaconf import OmegaConf
 
 from conftest import REALDATA, compose_evaluate
-from helpers.crossview_runs import train_cfg, train_until_killed, val_records
+from helpers.crossview_runs import pairs_of, task_of, train_cfg, train_until_killed, val_records
 
 
 def test_kill_and_resume_reproduce_the_uninterrupted_run(tiny_cvusa, tmp_path, monkeypatch):
@@ -116,10 +115,10 @@ def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
     # computed from the checkpoint and the real images outside evaluate(), ranked in float64.
     state = ckpt_io.load(run_dir / "best.pt")
     stored = OmegaConf.create(state["config"])
-    task = crossview_run.build_task(stored)
+    task = task_of(stored)
     task.load_state_dict(state["task"])
     real = OmegaConf.merge(stored.dataset, {"root": str(REALDATA / "cvusa_mini")})
-    pairs = build(real, "val", train=False)
+    pairs = pairs_of(real, "val", train=False)
     with torch.no_grad():
         query, reference = task.eval().model(torch.stack([pairs[i]["query"] for i in range(len(pairs))]),
                                              torch.stack([pairs[i]["reference"] for i in range(len(pairs))]))

@@ -1,0 +1,142 @@
+"""A cross-view run's config, parsed once at the door into typed objects that the rest of the run is handed.
+
+    run = parse_training(cfg)      # train.py: every section checked, nothing read or built yet
+    run = parse_evaluation(cfg, stored)   # evaluate.py: the checkpoint's config, with the test condition asked for
+
+Every check that can fail on the config alone runs here, before any data is read, generated or decoded: the
+dataset's shared keys (CrossViewDataConfig) and its reader's own keys, the model section, the trainer section and
+the name and arguments of every registered component (backbone, head, loss, optimizer, sampler).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc import registry
+from geoloc.config import ConfigError, EvaluateKeys, TrainKeys, checked, to_yaml, top_level
+from geoloc.engine import TrainerConfig
+from geoloc.models.crossview import CrossViewModelConfig
+from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
+from geoloc.tasks.crossview.gallery import GalleryConfig
+
+#: the registered kinds a cross-view network and its training are built from (registry.KINDS: their sections)
+COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler")
+# transform settings that must match what the network was trained on: evaluation always takes them from the
+# checkpoint. The field of view and heading are the test condition, which evaluate.py may set.
+TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
+# what an evaluation may take from the command line besides the reader's own keys: which data (the dataset and its
+# root, split and checks) and the test condition (field of view, heading). Batch sizes and augmentation stay as
+# trained: they do not change what is measured.
+EVALUATION_KEYS = ("name", "module", "root", "split", "check_files", "max_val", "fov", "random_heading",
+                   "heading_steps")
+
+
+@dataclass(frozen=True)
+class Components:
+    """The registered parts of the network and its training, each a config section {name, module, **keys}."""
+
+    backbone: dict
+    head: dict
+    loss: dict
+    optim: dict
+    sampler: dict = field(default_factory=lambda: {"name": "shuffle"})
+
+    def section(self, kind: str) -> dict:
+        return getattr(self, registry.KINDS[kind])
+
+
+@dataclass(frozen=True)
+class CrossViewTraining:
+    """Everything a training run reads from its config."""
+
+    data: CrossViewDataConfig
+    reader: dict  # the dataset section's reader keys: name, module and the reader's own arguments
+    model: CrossViewModelConfig
+    components: Components
+    trainer: TrainerConfig
+    job: TrainKeys  # seed, ckpt, init_from, figures
+    yaml: str = ""  # the resolved config, as checkpoints store it
+
+
+@dataclass(frozen=True)
+class CrossViewEvaluation:
+    """Everything an evaluation reads: the checkpoint's network and transforms, the split and test condition asked
+    for, and where the numbers go."""
+
+    data: CrossViewDataConfig
+    reader: dict
+    model: CrossViewModelConfig
+    components: Components
+    job: EvaluateKeys  # ckpt, metrics_out, device, num_workers, progress
+    gallery: GalleryConfig
+    run_dir: str | None = None
+
+    @property
+    def batch_size(self) -> int:
+        return self.data.val_batch_size or self.data.batch_size
+
+
+def _plain(section) -> dict:
+    """A config section as a dict; a mandatory value left unset (`???`) reads as absent."""
+    if section is None:
+        return {}
+    if isinstance(section, DictConfig):
+        return {k: v for k, v in OmegaConf.to_container(section, resolve=True).items() if v != "???"}
+    return dict(section)
+
+
+def parse_components(cfg: DictConfig) -> Components:
+    """The component sections of `cfg`, each checked against its registered factory (name and arguments)."""
+    sections = {registry.KINDS[kind]: _plain(cfg.get(registry.KINDS[kind])) for kind in COMPONENTS}
+    if not sections["sampler"]:  # checkpoints written before samplers were a group
+        sections["sampler"] = {"name": "shuffle"}
+    for kind in COMPONENTS:
+        section = registry.KINDS[kind]
+        if not sections[section]:
+            raise ConfigError(f"config section '{section}' is missing; choose one with {section}=<option>")
+        registry.check(kind, sections[section], runtime=registry.RUNTIME[kind])
+    return Components(**sections)
+
+
+def parse_training(cfg: DictConfig) -> CrossViewTraining:
+    """train.py's config, checked section by section (module docstring)."""
+    data, reader = parse_dataset(cfg.dataset)
+    trainer = checked(cfg.trainer, TrainerConfig, "trainer")
+    model = checked(cfg.model, CrossViewModelConfig, "model")
+    components = parse_components(cfg)
+    return CrossViewTraining(data=data, reader=reader, model=model, components=components, trainer=trainer,
+                             job=top_level(cfg, TrainKeys, "train.py"), yaml=to_yaml(cfg))
+
+
+def parse_evaluation(cfg: DictConfig, stored: DictConfig) -> CrossViewEvaluation:
+    """evaluate.py's config: the checkpoint's `stored` config, with the dataset and test condition asked for in
+    `cfg` (EVALUATION_KEYS and another reader's own keys; TRANSFORM_KEYS always as trained)."""
+    data, reader = parse_dataset(evaluated_dataset(stored.dataset, cfg.get("dataset")))
+    model = checked(stored.model, CrossViewModelConfig, "model")
+    components = parse_components(stored)
+    gallery = checked(cfg.get("gallery") or {}, GalleryConfig, "gallery")
+    return CrossViewEvaluation(data=data, reader=reader, model=model, components=components,
+                               job=top_level(cfg, EvaluateKeys, "evaluate.py"), gallery=gallery,
+                               run_dir=OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False))
+
+
+def evaluated_dataset(stored: DictConfig | dict, requested: DictConfig | dict | None) -> dict:
+    """The dataset section an evaluation reads: the stored one, overlaid with what was asked for.
+
+    Another dataset (a different `name`) keeps only the stored shared keys, so its reader's own keys come from the
+    request or the reader's defaults, and never inherits the trained one's root."""
+    section = _plain(stored)
+    overlay = {k: v for k, v in _plain(requested).items() if v is not None}
+    if overlay.get("name") not in (None, section.get("name")):
+        section = {k: v for k, v in section.items() if k in CrossViewDataConfig.__dataclass_fields__
+                   and k != "module"}
+        section["root"] = None
+    shared = CrossViewDataConfig.__dataclass_fields__
+    for key, value in overlay.items():
+        if key in TRANSFORM_KEYS:
+            continue
+        if key in EVALUATION_KEYS or key not in shared:
+            section[key] = value
+    return section

@@ -6,12 +6,14 @@ import hydra
 from omegaconf import DictConfig
 
 import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
+from geoloc.apps.localize.run import LocalizeConfig, localize
+from geoloc.launch.schemas import store_dataclass
+
+store_dataclass("localize", LocalizeConfig)  # the defaults conf/localize.yaml extends
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="localize")
 def main(cfg: DictConfig) -> None:
-    from geoloc.apps.localize.run import localize
-
     localize(cfg)
 
 

@@ -23,7 +23,7 @@ def main(cfg: DictConfig) -> float:
 if __name__ == "__main__":
     import sys
 
-    from geoloc.engine.distributed import hydra_overrides_for_rank
+    from geoloc.launch.hydra_hooks import hydra_overrides_for_rank
 
     sys.argv += hydra_overrides_for_rank()  # ranks > 0 of torchrun share rank 0's run dir and write nothing
     main()

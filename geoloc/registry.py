@@ -101,6 +101,22 @@ def build(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (
     return factory(**params, **runtime)
 
 
+def with_defaults(kind: str, section: DictConfig | dict) -> dict:
+    """`section` with every config key of its factory present: the factory's signature defaults (run-time
+    arguments excepted; tuples as lists), overlaid with the section's own values."""
+    params = _as_dict(section)
+    import_module(params.get("module"), KINDS[kind])
+    factory = lookup(kind, params["name"])
+    keys = {}
+    for key, param in inspect.signature(factory).parameters.items():
+        if key in RUNTIME.get(kind, ()) or param.kind not in (param.POSITIONAL_OR_KEYWORD, param.KEYWORD_ONLY):
+            continue
+        default = None if param.default is param.empty else param.default
+        keys[key] = list(default) if isinstance(default, tuple) else default
+    named = {k: params[k] for k in RESERVED if k in params}
+    return {**named, **keys, **params}
+
+
 def check(kind: str, section: DictConfig | dict, *, exclude: tuple[str, ...] = (),
           runtime: tuple[str, ...] = ()) -> None:
     """build()'s checks without building: for what is built later (an optimizer needs the network first)."""

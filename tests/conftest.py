@@ -11,6 +11,10 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends, as the entry points store them)
+from geoloc.apps.localize.run import LocalizeConfig
+from geoloc.launch.schemas import store_dataclass
+
+store_dataclass("localize", LocalizeConfig)  # as localize.py stores it
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"

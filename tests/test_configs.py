@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+import torch
 from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
@@ -20,34 +21,79 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
 
 
-@pytest.mark.parametrize("dataset", ["synthetic", "cvusa", "cvact", "vigor", "u1652"])
-@pytest.mark.parametrize("experiment", [None, *options("experiment")])
-def test_every_crossview_config_composes_and_builds(dataset, experiment, tmp_path):
-    overrides = [f"dataset={dataset}", f"dataset.root={tmp_path}", f"run_dir={tmp_path}"]
-    if experiment:
-        overrides.append(f"experiment={experiment}")
+GROUPS = sorted(p.name for p in CONF.iterdir() if p.is_dir() and p.name != "hydra")
+
+
+def every_option() -> list[tuple[str, str]]:
+    return [(group, option) for group in GROUPS for option in options(group)]
+
+
+@pytest.fixture(scope="module")
+def imagenet_stand_in(tmp_path_factory) -> dict:
+    """Test state dicts standing in for the ImageNet files a paper option reads (nothing is downloaded): a
+    torchvision-layout VGG16 `features.*` dict for the trunk, and a features-only one for MMDIP's perceptual loss."""
+    from geoloc.losses.perceptual import vgg16_features
+
+    folder = tmp_path_factory.mktemp("weights")
+    torch.manual_seed(0)
+    features = vgg16_features(30)  # conv5_3's ReLU: every conv of the trunk
+    torch.save({f"features.{k}": v for k, v in features.state_dict().items()}, folder / "vgg16.pth")
+    torch.save(vgg16_features(16).state_dict(), folder / "vgg16_features.pth")
+    return {"trunk": folder / "vgg16.pth", "perceptual": folder / "vgg16_features.pth"}
+
+
+def task_of_option(group: str, option: str) -> str:
+    """The task an option belongs to: a task option is its own; an experiment says it; a dataset its reader's
+    registry; every other group is one the cross-view task brings."""
+    if group == "task":
+        return option
+    if group == "experiment":
+        return str(compose_train([f"experiment={option}"]).task.name)
+    if group == "dataset" and option not in registry.names("dataset"):
+        return "mmdip"
+    return "crossview"
+
+
+@pytest.mark.parametrize("group,option", every_option())
+def test_every_option_of_every_group_composes_and_builds(group, option, imagenet_stand_in, tmp_path):
+    """Each option of each conf/ group composes for its task and builds what it configures, offline."""
+    task = task_of_option(group, option)
+    overrides = [f"{group}={option}", f"run_dir={tmp_path}"]
+    if task == "mmdip" and group not in ("task", "experiment"):
+        overrides.insert(0, "task=mmdip")
     cfg = compose_train(overrides)
-    if cfg.task.name != "crossview":
-        pytest.skip("experiment for another task")
-    parse_dataset(cfg.dataset)[0]
-    checked(cfg.trainer, TrainerConfig, "trainer")
-    registry.check_arguments(registry.lookup("dataset", cfg.dataset.name),
-                             {k: v for k, v in cfg.dataset.items() if k not in CrossViewDataConfig.__dataclass_fields__},
-                             {"root": None, "split": "train"}, cfg.dataset.name, "dataset")
-    if cfg.backbone.pretrained:  # no ImageNet file here: the same network, untrained (and thinner for VGG16)
-        thinner = (["backbone.width=0.125", "model.dim=64"] if cfg.backbone.name == "vgg16" else
-                   ["backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"])
-        cfg = compose_train([*overrides, "backbone.pretrained=false", *thinner])
-    task_of(cfg)
+    assert cfg.task.name == task
+    if cfg.dataset.get("root") in (None, "???") and cfg.dataset.name not in ("synthetic", "vigor", "u1652",
+                                                                              "dynamic"):
+        cfg = compose_train([*overrides, f"dataset.root={tmp_path}"])
+    if task == "mmdip":
+        from geoloc.tasks.mmdip.joint import JointTask
+        from geoloc.tasks.mmdip.pipeline import parse
+        from geoloc.tasks.mmdip.segmentation import SegmentationTask
 
+        weights = cfg.task.translation.perceptual_weights
+        if weights != "none":
+            cfg = compose_train([*overrides, f"task.translation.perceptual_weights={imagenet_stand_in['perceptual']}"])
+        if cfg.dataset.name == "emptycities":  # an evaluation-only reader: refused for training, read by evaluate
+            with pytest.raises(ConfigError, match="for evaluation only"):
+                parse(cfg)
+            from geoloc.tasks.mmdip.config import DynamicDataConfig
 
-@pytest.mark.parametrize("group", ["backbone", "head", "loss", "optim", "sampler"])
-def test_every_group_option_builds(group, tmp_path):
-    for option in options(group):
-        small = SMALL_NETWORK if group != "backbone" or option.startswith("vgg16") else [
-            "backbone.pretrained=false", "backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"]
-        task = task_of(compose_train([f"{group}={option}", f"run_dir={tmp_path}", *small]))
-        task.configure_optimizers()
+            evaluation = compose_evaluate(["ckpt=x.pt", "dataset=emptycities", f"dataset.root={tmp_path}"])
+            asked = {k: v for k, v in evaluation.dataset.items() if v is not None}  # null = as trained
+            checked(asked, DynamicDataConfig, "dataset")
+            return
+        task_cfg, _, _ = parse(cfg)
+        uniform = [1 / task_cfg.num_classes] * task_cfg.num_classes
+        SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, uniform).configure_optimizers()
+        JointTask(task_cfg, uniform).configure_optimizers()
+        return
+    if cfg.backbone.get("pretrained"):
+        stand_in = ([f"backbone.weights_path={imagenet_stand_in['trunk']}"] if cfg.backbone.name == "vgg16" else
+                    ["backbone.pretrained=false", "backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"])
+        cfg = compose_train([*overrides, *stand_in] + ([f"dataset.root={tmp_path}"] if "root=" not in str(
+            overrides) and cfg.dataset.get("root") not in (None,) else []))
+    task_of(cfg).configure_optimizers()
 
 
 @pytest.mark.parametrize("task", options("task"))

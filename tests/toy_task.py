@@ -23,6 +23,8 @@ class Points(torch.utils.data.Dataset):
 class ScriptedRecall(Task):
     """Fits one weight to the points; each validation reports the next R@1 of `script`, so the log is known."""
 
+    monitor = "R@1"
+
     def __init__(self, script=()):
         super().__init__()
         self.weight = torch.nn.Parameter(torch.zeros(1))

@@ -5,9 +5,10 @@
 
 Each run dir (any folder below MULTIRUN_DIR with a metrics.jsonl) gives its validation records (the keys `val/...`),
 each tied to its epoch by the end-of-epoch row (`train/epoch_...`) the trainer writes after it. `--at last` takes
-each run's last record; `--at best` the record of its best epoch, the highest `--monitor` value (the earliest of
-equal ones, as the trainer picks best.pt); `--at both` (default) prints both tables. The epoch column is the mean
-± std of those epochs, counted from 0 as in metrics.jsonl, checkpoints and the trainer's `[epoch N]` lines.
+each run's last record; `--at best` the record of its best epoch: the best value of the metric the run's
+trainer monitored (logged in metrics.jsonl as run/monitor and run/monitor_mode; `--monitor` picks another, highest
+first), the earliest of equal ones, as the trainer picks best.pt; `--at both` (default) prints both tables. The
+epoch column is the mean ± std of those epochs, counted from 0 as in metrics.jsonl, checkpoints and the trainer's `[epoch N]` lines.
 Runs are grouped by their Hydra overrides (`.hydra/overrides.yaml`, else the dir name) minus `seed=`; overrides
 that every run shares (dataset.root, ...) are left out of the row names. Recall values are shown in %; std is the
 sample standard deviation (n - 1), blank for a single seed.
@@ -53,8 +54,18 @@ def validations(metrics_file: Path) -> list[dict[str, float]]:
     return [by_epoch[e] for e in sorted(by_epoch)]
 
 
-def pick(records: list[dict[str, float]], at: str, monitor: str = "R@1", source: Path | None = None):
-    """The last record, or the best one: the highest `monitor`, the earliest of equal ones (the trainer's `>`)."""
+def recorded_monitor(metrics_file: Path) -> tuple[str, str] | None:
+    """(metric, "max" | "min") that selected the run's best.pt, as the trainer logged it; None if it logged none."""
+    for line in metrics_file.read_text().splitlines():
+        record = json.loads(line) if line.strip() else {}
+        if "run/monitor" in record:
+            return record["run/monitor"], record.get("run/monitor_mode", "max")
+    return None
+
+
+def pick(records: list[dict[str, float]], at: str, monitor: str, source: Path | None = None, mode: str = "max"):
+    """The last record, or the best one: the highest (mode max) or lowest (min) `monitor`, the earliest of equal
+    ones (the trainer's strict comparison)."""
     if at == "last":
         return records[-1]
     scored = [r for r in records if monitor in r]
@@ -62,7 +73,8 @@ def pick(records: list[dict[str, float]], at: str, monitor: str = "R@1", source:
         keys = sorted({k for r in records for k in r} - {"epoch"})
         raise ValueError(f"{source or 'a run'} has no val/{monitor} to pick the best epoch by; it logs {keys}. "
                          f"Pass --monitor with one of those, or --at last.")
-    return max(scored, key=lambda r: r[monitor])  # max() returns the first of equal maxima
+    sign = 1.0 if mode == "max" else -1.0
+    return max(scored, key=lambda r: sign * r[monitor])  # max() returns the first of equal maxima
 
 
 def run_overrides(run_dir: Path) -> list[str]:
@@ -73,13 +85,18 @@ def run_overrides(run_dir: Path) -> list[str]:
     return [x for x in name.split(",") if x]
 
 
-def collect(multirun_dir: Path, at: str = "last", monitor: str = "R@1") -> list[tuple[list[str], dict[str, float]]]:
-    """[(overrides, the run's last or best validation record)] for each run that validated at least once."""
+def collect(multirun_dir: Path, at: str = "last", monitor: str | None = None) -> list[tuple[list[str], dict]]:
+    """[(overrides, the run's last or best validation record)] for each run that validated at least once. The best
+    epoch is picked by `monitor` (max), else by the metric and mode each run recorded."""
     runs = []
     for metrics_file in sorted(multirun_dir.rglob("metrics.jsonl")):
         records = validations(metrics_file)
-        if records:
-            runs.append((run_overrides(metrics_file.parent), pick(records, at, monitor, metrics_file)))
+        if not records:
+            continue
+        chosen, mode = (monitor, "max") if monitor else (recorded_monitor(metrics_file) or (None, "max"))
+        if at != "last" and chosen is None:
+            raise ValueError(f"{metrics_file} records no monitored metric (a run by an older geoloc): pass --monitor")
+        runs.append((run_overrides(metrics_file.parent), pick(records, at, chosen, metrics_file, mode)))
     return runs
 
 
@@ -117,13 +134,15 @@ def table(groups: dict[str, list[dict[str, float]]], metrics: list[str] | None =
     return "\n".join(lines)
 
 
-def tables(multirun_dir: Path, at: str = "both", monitor: str = "R@1", metrics: list[str] | None = None) -> str:
+def tables(multirun_dir: Path, at: str = "both", monitor: str | None = None, metrics: list[str] | None = None) -> str:
     """One table for `at` = last or best; for both, each under a markdown heading."""
     if at in AT:
         return table(group(collect(multirun_dir, at, monitor)), metrics)
+    recorded = {recorded_monitor(f) for f in multirun_dir.rglob("metrics.jsonl")} - {None}
+    named = monitor or (next(iter(recorded))[0] if len(recorded) == 1 else "the monitored metric")
     parts = []
     for one in AT:
-        parts.append(f"### {TITLES[one].format(monitor=monitor)}\n\n"
+        parts.append(f"### {TITLES[one].format(monitor=named)}\n\n"
                      + table(group(collect(multirun_dir, one, monitor)), metrics))
     return "\n\n".join(parts)
 
@@ -133,7 +152,8 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("multirun_dir", type=Path)
     parser.add_argument("--at", choices=[*AT, "both"], default="both",
                         help="each run's last validation, its best epoch's, or both tables (default)")
-    parser.add_argument("--monitor", default="R@1", help="the metric that picks the best epoch (default R@1)")
+    parser.add_argument("--monitor", default=None,
+                        help="the metric that picks the best epoch (default: the one each run's trainer monitored)")
     parser.add_argument("--metrics", default=None, help="comma-separated, e.g. R@1,R@5 (default: all R@ keys)")
     parser.add_argument("--out", type=Path, default=None, help="also write the tables to this file")
     args = parser.parse_args(argv)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import hashlib
-
+import json
+import math
 import os
 import random
 import tempfile
@@ -135,3 +136,30 @@ def weights_fingerprint(module: torch.nn.Module) -> str:
         h.update(str(tuple(tensor.shape)).encode())
         h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()
+
+
+def init_from(task: torch.nn.Module, path: str | Path, fresh: tuple[str, ...] = ()) -> dict:
+    """Load the network weights of checkpoint `path` into `task` (keys under the `fresh` prefixes keep their new
+    values) and return the record of where they came from (`write_source` puts it in the run dir): a new run
+    (epoch 0, fresh optimizer) that starts from another run's weights."""
+    path = Path(path)
+    state = load(path)
+    load_task_state(task, state, path, fresh=fresh,
+                    hint="init_from= needs the same network (model.*) as the checkpoint it starts from.")
+    best = state.get("best_metric")
+    return {"path": str(path.resolve()), "sha256": file_sha256(path), "epoch": state.get("epoch"),
+            "global_step": state.get("global_step"), "monitor": state.get("monitor"),
+            "best_metric": best if best is not None and math.isfinite(best) else None}
+
+
+def write_source(run_dir: Path, record: dict) -> None:
+    """run_dir/init_from.json: where an init_from= run's weights came from."""
+    (Path(run_dir) / "init_from.json").write_text(json.dumps(record, indent=2) + "\n")
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

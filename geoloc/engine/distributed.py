@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import re
 import subprocess
-import tempfile
 
 import torch
 import torch.distributed as dist
@@ -74,21 +73,6 @@ def slurm_master_env() -> None:
         single_node = int(os.environ.get("SLURM_JOB_NUM_NODES", os.environ.get("SLURM_NNODES", "1"))) == 1
         os.environ["MASTER_ADDR"] = "127.0.0.1" if single_node or not nodes else first_host(nodes)
     os.environ.setdefault("MASTER_PORT", str(20000 + int(os.environ.get("SLURM_JOB_ID", "0")) % 20000))
-
-
-def hydra_overrides_for_rank() -> list[str]:
-    """Hydra overrides for ranks > 0 of a torchrun / srun launch of train.py.
-
-    Each rank runs Hydra itself, and `${now:...}` in the run dir can differ by a second between ranks, which
-    would make a second run dir. Ranks > 0 get a throwaway Hydra dir without logs or .hydra/ (they write
-    nothing: rank 0 owns the run dir), so there is one run dir per launch.
-    """
-    rank_ = launch_rank()
-    if rank_ == 0:
-        return []
-    scratch = os.path.join(tempfile.gettempdir(), f"geoloc-hydra-rank{rank_}")
-    return [f"hydra.run.dir={scratch}", "hydra.output_subdir=null", "hydra/job_logging=disabled",
-            "hydra/hydra_logging=disabled"]
 
 
 def launch_rank() -> int:

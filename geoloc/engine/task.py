@@ -13,8 +13,9 @@ from torch import nn
 
 
 class Task(nn.Module):
-    #: the validation metric that selects best.pt when trainer.monitor is not set (trainer.monitor_mode: max/min)
-    monitor: str = "R@1"
+    #: the validation metric that selects best.pt when trainer.monitor is not set (trainer.monitor_mode: max/min);
+    #: every task names its own
+    monitor: str | None = None
     #: False for tasks with several optimizers that step themselves (GANs); they call engine.backward/step
     automatic_optimization: bool = True
 

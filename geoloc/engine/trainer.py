@@ -241,6 +241,8 @@ class Trainer:
         train_loader = task.train_dataloader(train_set, batch_size, self.engine)
         val_loader = task.val_dataloaders(val_set, val_batch_size or batch_size, self.engine) if val_set else None
         monitor = self.monitor(task)
+        # what selects best.pt, in the log beside the numbers, so a table over runs picks best epochs the same way
+        self.logger.log({"monitor": monitor, "monitor_mode": self.cfg.monitor_mode}, self.global_step, prefix="run/")
 
         last_val: dict[str, float] = {}
         for epoch in range(self.epoch, self.cfg.max_epochs):
@@ -314,7 +316,11 @@ class Trainer:
                 "samples_per_s": samples * dist.world_size() / (time.perf_counter() - t0)}
 
     def monitor(self, task: Task) -> str:
-        return self.cfg.monitor or task.monitor
+        monitor = self.cfg.monitor or task.monitor
+        if not monitor:
+            raise ValueError(f"{type(task).__name__} names no validation metric to select best.pt by: set its "
+                             f"`monitor` attribute, or trainer.monitor=<a key its validation returns>")
+        return monitor
 
     @torch.no_grad()
     def validate(self, task: Task, loaders: DataLoader | dict[str, DataLoader]) -> dict[str, float]:

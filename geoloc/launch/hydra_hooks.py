@@ -7,6 +7,8 @@
   Hydra's `${now:}`, so a sweep job started by a launcher in another process resolves the sweep dir to the same
   folder (Hydra copies the resolver cache into each job's config; the job process imports this module when it
   unpickles the callback below, which registers the resolver there too).
+- `hydra_overrides_for_rank`: ranks > 0 of a torchrun / srun launch of train.py write into a throwaway Hydra
+  dir, so one launch makes one run dir.
 - `RefuseTakenRunDir`: Hydra writes `.hydra/` into the run dir before the app starts, so a run refused only by
   the app (geoloc/launch/rundir.py) would already have overwritten the config record of the run it protects.
   This callback refuses a taken `hydra.run.dir` first. (Under `-m`, Hydra writes each job's `.hydra/` before any
@@ -16,6 +18,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
@@ -39,6 +42,23 @@ class RefuseTakenRunDir(Callback):
         except RunDirTaken as err:
             # Hydra turns a callback's exception into a warning and goes on; SystemExit stops it (exit status 1)
             raise SystemExit(f"RunDirTaken: {err}") from None
+
+
+def hydra_overrides_for_rank() -> list[str]:
+    """Hydra overrides for ranks > 0 of a torchrun / srun launch of train.py.
+
+    Each rank runs Hydra itself, and `${now:...}` in the run dir can differ by a second between ranks, which
+    would make a second run dir. Ranks > 0 get a throwaway Hydra dir without logs or .hydra/ (they write
+    nothing: rank 0 owns the run dir), so there is one run dir per launch.
+    """
+    from geoloc.engine.distributed import launch_rank
+
+    rank_ = launch_rank()
+    if rank_ == 0:
+        return []
+    scratch = os.path.join(tempfile.gettempdir(), f"geoloc-hydra-rank{rank_}")
+    return [f"hydra.run.dir={scratch}", "hydra.output_subdir=null", "hydra/job_logging=disabled",
+            "hydra/hydra_logging=disabled"]
 
 
 register_resolvers()

@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 
 from geoloc.config import ConfigError
 from geoloc.engine import distributed as dist
+from geoloc.launch import resume
 from geoloc.launch.rundir import claimed
 
 
@@ -31,6 +32,9 @@ def train(cfg: DictConfig) -> dict:
     try:
         package = task_package(cfg.task.name)
         with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
+            canonical = getattr(package, "canonical_config", None)  # a task that can resume says how it compares
+            if cfg.get("ckpt") and canonical is not None:  # before any data is generated or checked
+                resume.checked_resume(cfg, package.RESUME_MAY_CHANGE, canonical)
             return package.train(cfg, run_dir)
     finally:
         dist.cleanup()

@@ -22,7 +22,6 @@ composed config, at the value that runs.
 
 from __future__ import annotations
 
-import inspect
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -39,14 +38,7 @@ def dataclass_defaults(schema: type) -> dict[str, Any]:
 
 def factory_defaults(kind: str, name: str) -> dict[str, Any]:
     """{"name": name, **the factory's config keys at their defaults} of registered component `name`."""
-    factory = registry.lookup(kind, name)
-    keys = {}
-    for key, param in inspect.signature(factory).parameters.items():
-        if key in registry.RUNTIME[kind] or param.kind not in (param.POSITIONAL_OR_KEYWORD, param.KEYWORD_ONLY):
-            continue
-        default = None if param.default is param.empty else param.default
-        keys[key] = list(default) if isinstance(default, tuple) else default
-    return {"name": name, **keys}
+    return registry.with_defaults(kind, {"name": name})
 
 
 def reader_defaults(name: str) -> dict[str, Any]:
@@ -72,5 +64,9 @@ def register() -> None:
         store.store(group="schema/dataset", name=name, node=reader_defaults(name))
     for section, schema in (("train", TrainKeys), ("evaluate", EvaluateKeys), ("trainer", TrainerConfig),
                             ("model", CrossViewModelConfig), ("gallery", GalleryConfig)):
-        node = dataclass_defaults(schema)
-        store.store(group="schema", name=section, node=node)
+        store_dataclass(section, schema)
+
+
+def store_dataclass(name: str, schema: type) -> None:
+    """Store dataclass `schema`'s defaults as the node `schema/<name>` (an app's entry point stores its own)."""
+    ConfigStore.instance().store(group="schema", name=name, node=dataclass_defaults(schema))

@@ -59,7 +59,8 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
     if workers < 1:
         raise ValueError("workers must be at least 1")
     root = Path(out)
-    marker = {"generator": "geoloc.synthetic", "version": VERSION, "layout": layout, "seed": seed,
+    # the generator's tag is the name the renderer was published under; every cache already rendered carries it
+    marker = {"generator": "geoloc.data.synthetic", "version": VERSION, "layout": layout, "seed": seed,
               "train": train, "val": val, "preset": preset, "config": cfg.as_dict()}
     if opts is not None:  # only the newer layouts' markers carry options, so older datasets stay valid
         marker["options"] = asdict(opts)

@@ -23,7 +23,7 @@ from geoloc.config import checked
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.launch import run
+from geoloc.launch import hydra_hooks, run
 
 from torch.utils.data import default_collate
 
@@ -207,6 +207,6 @@ def _no_scontrol(*args, **kwargs):
 def test_ranks_above_zero_get_a_throwaway_hydra_dir(monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "0")
-    assert dist.hydra_overrides_for_rank() == []
+    assert hydra_hooks.hydra_overrides_for_rank() == []
     monkeypatch.setenv("RANK", "1")
-    assert "hydra.output_subdir=null" in dist.hydra_overrides_for_rank()
+    assert "hydra.output_subdir=null" in hydra_hooks.hydra_overrides_for_rank()

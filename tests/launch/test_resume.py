@@ -21,10 +21,13 @@ def test_config_differences_skip_only_the_allow_list():
               "dataset": {"root": "/a", "workers": 2}, "run_dir": "/r1", "old": 1}
     requested = {"optim": {"lr": 1e-2, "betas": [0.9, 0.99]}, "trainer": {"max_epochs": 9, "precision": "32"},
                  "dataset": {"root": "/b", "workers": 8}, "run_dir": "/r2", "new": {"k": 2}}
-    assert resume.config_differences(stored, requested) == [
+    allowed = resume.RESUME_MAY_CHANGE + ("dataset.workers",)  # a task's own allow-list adds to the engine's
+    assert resume.config_differences(stored, requested, allowed) == [
         "dataset.root: /a → /b", "new.k: (absent) → 2", "old: 1 → (absent)",
         "optim.betas: [0.9, 0.999] → [0.9, 0.99]", "optim.lr: 0.0001 → 0.01"]
-    assert resume.config_differences(stored, stored) == []
+    assert resume.config_differences(stored, stored, allowed) == []
+    assert resume.config_differences(stored, requested)[0] == "dataset.root: /a → /b"
+    assert "dataset.workers: 2 → 8" in resume.config_differences(stored, requested)  # not allowed without the task
 
 
 def test_resume_with_a_changed_lr_or_dataset_root_is_refused_with_the_differences(finished_run, tmp_path):
@@ -57,7 +60,7 @@ def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(fini
     # the weights arrive; the GMS queue (the source data's places) starts empty
     cfg = train_cfg(root, tmp_path / "x")
     task = task_of(cfg)
-    record = resume.init_from(task, source_path, fresh=INIT_FROM_FRESH)
+    record = ckpt_io.init_from(task, source_path, fresh=INIT_FROM_FRESH)
     for key, value in task.state_dict().items():
         if not key.startswith("loss."):
             assert torch.equal(value, source["task"][key]), key

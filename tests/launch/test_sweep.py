@@ -81,10 +81,11 @@ def test_aggregate_takes_the_last_validation_and_averages_over_seeds(tmp_path, c
     assert text.splitlines()[0] == "| run | seeds | epoch | R@1 | R@5 |"
 
 
-def _epochs(rows):
-    """metrics.jsonl rows as the trainer writes them: per epoch, a step row, the validation row (when given), then
-    the end-of-epoch row. `rows` is [(epoch, R@1, R@5) or (epoch, None, None) for an epoch without validation]."""
-    out = []
+def _epochs(rows, monitor=("R@1", "max")):
+    """metrics.jsonl rows as the trainer writes them: the monitored metric, then per epoch a step row, the
+    validation row (when given) and the end-of-epoch row. `rows` is [(epoch, R@1, R@5) or (epoch, None, None) for
+    an epoch without validation]."""
+    out = [{"step": 10 * rows[0][0], "time": 0.0, "run/monitor": monitor[0], "run/monitor_mode": monitor[1]}]
     for epoch, r1, r5 in rows:
         step = 10 * (epoch + 1)
         out.append({"step": step, "time": 0.0, "train/loss": 0.7, "train/lr": 1e-3})
@@ -110,9 +111,10 @@ def test_validations_pair_each_record_with_its_epoch(tmp_path):
     _three_seeds(tmp_path)
     records = aggregate_sweep.validations(tmp_path / "2" / "metrics.jsonl")
     assert [(r["epoch"], r["R@1"]) for r in records] == [(1, .20), (3, .60)]  # the killed attempt's 0.90 is gone
-    assert aggregate_sweep.pick(records, "best")["epoch"] == 3
+    assert aggregate_sweep.pick(records, "best", "R@1")["epoch"] == 3
+    assert aggregate_sweep.pick(records, "best", "R@1", mode="min")["epoch"] == 1
     tied = aggregate_sweep.validations(tmp_path / "1" / "metrics.jsonl")
-    assert aggregate_sweep.pick(tied, "best")["epoch"] == 1  # the earliest of equal R@1, as the trainer keeps
+    assert aggregate_sweep.pick(tied, "best", "R@1")["epoch"] == 1  # the earliest of equal R@1, as the trainer keeps
     # a run resumed with ckpt= logs into a new run dir from the epoch after the checkpoint's
     _fake_run(tmp_path, "resumed", ["seed=0"], _epochs([(4, .30, .70), (5, .20, .60)]))
     resumed = aggregate_sweep.validations(tmp_path / "resumed" / "metrics.jsonl")
@@ -125,7 +127,8 @@ def test_the_trainers_own_metrics_file_gives_each_validation_its_epoch(tmp_path)
     best = Trainer(cfg, tmp_path).fit(ScriptedRecall([0.2, 0.6, 0.4]), Points(), Points(), batch_size=2)
     records = aggregate_sweep.validations(tmp_path / "metrics.jsonl")
     assert [(r["epoch"], r["R@1"]) for r in records] == [(1, 0.2), (3, 0.6), (4, 0.4)]  # every 2nd epoch and the last
-    assert aggregate_sweep.pick(records, "best")["epoch"] == best["epoch"] == 3
+    assert aggregate_sweep.recorded_monitor(tmp_path / "metrics.jsonl") == ("R@1", "max")
+    assert aggregate_sweep.pick(records, "best", "R@1")["epoch"] == best["epoch"] == 3
 
 
 def test_both_tables_last_and_best_epoch_against_hand_computed_figures(tmp_path):
@@ -146,7 +149,41 @@ def test_both_tables_last_and_best_epoch_against_hand_computed_figures(tmp_path)
                                       "| (base) | 3 | 1.67 ± 1.15 | 50.00 ± 10.00 |"]
 
 
+def test_the_best_epoch_follows_the_metric_and_mode_each_run_monitored(tmp_path):
+    """A run that selected best.pt by the lowest loss is tabled at that epoch, not at its highest R@1."""
+    _fake_run(tmp_path, "0", ["seed=0"], _epochs([(0, .10, .5), (1, .40, .8)], monitor=("R@5", "min")))
+    best = aggregate_sweep.main([str(tmp_path), "--at", "best", "--metrics", "R@1"])
+    assert best.splitlines()[2] == "| (base) | 1 | 0.00 | 10.00 |"
+    assert aggregate_sweep.main([str(tmp_path), "--at", "best", "--monitor", "R@1", "--metrics", "R@1"]
+                                ).splitlines()[2] == "| (base) | 1 | 1.00 | 40.00 |"
+
+
 def test_best_by_a_metric_the_runs_do_not_log_says_which_keys_they_have(tmp_path):
     _three_seeds(tmp_path)
     with pytest.raises(ValueError, match=r"no val/mAP.*'R@1', 'R@5'.*--monitor"):
         aggregate_sweep.main([str(tmp_path), "--monitor", "mAP"])
+
+
+@pytest.mark.slow
+def test_the_readme_table_2_sweep_runs_every_ablation_row(tiny_cvusa, tmp_path):
+    """`python train.py -m ablation=full,no_ipt,no_msae,no_gms` as the README writes it (on tiny data): four jobs,
+    each training the row it names, gathered into one table."""
+    readme = (REPO / "README.md").read_text()
+    assert "python train.py -m ablation=full,no_ipt,no_msae,no_gms" in readme
+    sweep = tmp_path / "multirun"
+    tiny = [o for o in TINY if not o.startswith("loss.queue_size")]  # the rows set the queue themselves
+    cmd = [sys.executable, str(REPO / "train.py"), "-m", "ablation=full,no_ipt,no_msae,no_gms", *tiny,
+           f"dataset.root={tiny_cvusa}", "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}",
+           "hydra.sweep.subdir=${hydra.job.num}"]
+    proc = subprocess.run(cmd, cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    rows = {}
+    for job in range(4):
+        config = yaml.safe_load((sweep / str(job) / ".hydra" / "config.yaml").read_text())
+        assert (sweep / str(job) / "last.pt").is_file()
+        rows[job] = (config["dataset"]["alignment"], config["head"]["name"], config["loss"]["queue_size"])
+    assert rows == {0: ("ipt", "msae", 1024), 1: ("none", "msae", 1024), 2: ("ipt", "fc", 1024), 3: ("ipt", "msae", 0)}
+    text = aggregate_sweep.main([str(sweep)])
+    for row in ("ablation=full", "ablation=no_ipt", "ablation=no_msae", "ablation=no_gms"):
+        assert f"| {row} | 1 |" in text

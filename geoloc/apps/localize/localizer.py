@@ -35,9 +35,10 @@ class Localizer:
     running at once (the service serialises them)."""
 
     def __init__(self, task, data_cfg, index: GalleryIndex, places, info: dict, device: torch.device,
-                 heading_steps: int = 36):
+                 heading_steps: int | None = None):
         self.task, self.data_cfg, self.index, self.places, self.meta = task, data_cfg, index, places, info
-        self.device, self.heading_steps = device, int(heading_steps)
+        # candidate headings of the search: as asked, else as the checkpoint's dataset config says
+        self.device, self.heading_steps = device, int(heading_steps or data_cfg.heading_steps)
         self.view = info.get("query_view", "panorama")
         if self.view not in ("panorama", "sphere"):
             raise ConfigError(f"the gallery was built from {info.get('split')}, whose queries are {self.view} "
@@ -45,7 +46,7 @@ class Localizer:
         self.encoder = task.model.encoders(False)[0]
 
     @classmethod
-    def load(cls, ckpt, gallery, device: str = "auto", heading_steps: int = 36) -> "Localizer":
+    def load(cls, ckpt, gallery, device: str = "auto", heading_steps: int | None = None) -> "Localizer":
         from geoloc.tasks.crossview.run import load_checkpoint
 
         task, stored, _ = load_checkpoint(ckpt, "localize")

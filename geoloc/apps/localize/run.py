@@ -6,11 +6,30 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from omegaconf import DictConfig
+from dataclasses import dataclass
+
+from omegaconf import MISSING, DictConfig
 
 from geoloc.apps.localize.localizer import Localizer, read_street
+from geoloc.config import checked
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+@dataclass
+class LocalizeConfig:
+    """localize.py's keys (conf/localize.yaml extends this node: schema/localize)."""
+
+    ckpt: str = MISSING  # a checkpoint written by train.py
+    gallery: str = MISSING  # a gallery saved from it: python evaluate.py ckpt=... gallery.save=DIR
+    image: str = MISSING  # one image, or a folder of them
+    out: str = MISSING  # where localize.jsonl and the pictures go (default: a new folder under outputs/localize/)
+    topk: int = 5
+    fov: float = 360.0  # the image's horizontal field of view in degrees: 360 = a panorama; less = a street photo
+    heading: float | None = None  # its bearing when known (degrees clockwise from north; CVUSA panoramas: 0)
+    heading_steps: int | None = None  # candidate headings tried when heading is null; null: the checkpoint's own
+    device: str = "auto"
+    picture: bool = True  # one PNG per image: the query, the top-k tiles and a map of the candidates
 
 
 def images_of(target: Path) -> list[Path]:
@@ -25,18 +44,18 @@ def images_of(target: Path) -> list[Path]:
     return [target]
 
 
-def localize(cfg: DictConfig) -> list[dict]:
+def localize(section: DictConfig) -> list[dict]:
+    cfg = checked(section, LocalizeConfig, "localize.py")
     images = images_of(Path(cfg.image))
-    localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.get("device", "auto"),
-                               heading_steps=cfg.get("heading_steps", 36))
+    localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     answers = []
     with open(out / "localize.jsonl", "a") as lines:
         for path in images:
             image = read_street(path)
-            answer = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.get("heading"), path=path)
-            if cfg.get("picture", True):
+            answer = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
+            if cfg.picture:
                 from geoloc.apps.localize.picture import localization_figure
 
                 answer["picture"] = str(localization_figure(answer, image, localizer.places, out / f"{path.stem}.png"))

@@ -10,13 +10,14 @@ from omegaconf import MISSING
 from geoloc.apps.serve.app import MAX_BYTES, MAX_PIXELS, create_app
 
 USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=cpu]
-                    [heading_steps=36] [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
+                    [heading_steps=K] [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
 
   ckpt        a checkpoint written by train.py (best.pt)
   gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
   host, port  where to listen (127.0.0.1: this machine only; 0.0.0.0: every interface)
   device      cpu, cuda, cuda:1 ...
-  heading_steps  candidate headings tried when a request gives no heading (36: every 10 degrees)
+  heading_steps  candidate headings tried when a request gives no heading (default: the checkpoint's
+                 dataset.heading_steps, 36 unless it was trained otherwise: every 10 degrees)
   max_pixels  a larger image gets 413, refused from its header before it is decoded
   max_bytes   a larger request body gets 413
 
@@ -30,14 +31,14 @@ class ServeConfig:
     host: str = "127.0.0.1"
     port: int = 8000
     device: str = "cpu"
-    heading_steps: int = 36
+    heading_steps: int | None = None  # None: the checkpoint's dataset.heading_steps
     max_pixels: int = MAX_PIXELS
     max_bytes: int = MAX_BYTES
 
     def __post_init__(self):
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
-        if self.heading_steps < 1:
+        if self.heading_steps is not None and self.heading_steps < 1:
             raise ValueError(f"heading_steps must be >= 1, got {self.heading_steps}")
         if self.max_pixels < 1 or self.max_bytes < 1:
             raise ValueError(f"max_pixels and max_bytes must be >= 1, got {self.max_pixels} and {self.max_bytes}")

@@ -10,7 +10,7 @@ the name and arguments of every registered component (backbone, head, loss, opti
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -23,6 +23,9 @@ from geoloc.tasks.crossview.gallery import GalleryConfig
 
 #: the registered kinds a cross-view network and its training are built from (registry.KINDS: their sections)
 COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler")
+#: what a resume may change besides the engine's keys (geoloc/launch/resume.py): the processes that render the
+#: synthetic set, which write the same files either way
+RESUME_MAY_CHANGE = ("dataset.workers",)
 # transform settings that must match what the network was trained on: evaluation always takes them from the
 # checkpoint. The field of view and heading are the test condition, which evaluate.py may set.
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
@@ -140,3 +143,19 @@ def evaluated_dataset(stored: DictConfig | dict, requested: DictConfig | dict | 
         if key in EVALUATION_KEYS or key not in shared:
             section[key] = value
     return section
+
+
+def canonical_config(cfg: DictConfig) -> dict:
+    """A training config as a resume compares it (geoloc/launch/resume.py): parsed, with every default filled in,
+    the reader's and each component's signature defaults included, so only what would compute differently
+    differs. Configs of older layouts are upgraded first (legacy.py)."""
+    from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config
+
+    run = parse_training(upgraded_config(cfg) if is_old_layout(cfg) else cfg)
+    return {
+        "dataset": {**asdict(run.data), **registry.with_defaults("dataset", run.reader)},
+        "model": asdict(run.model),
+        **{registry.KINDS[kind]: registry.with_defaults(kind, run.components.section(kind)) for kind in COMPONENTS},
+        "trainer": asdict(run.trainer),
+        **asdict(run.job),
+    }

@@ -11,7 +11,6 @@ from geoloc.config import ConfigError, checked
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.launch import resume
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview import gallery
 from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
@@ -33,10 +32,7 @@ def build_task(model: CrossViewModelConfig, components: Components, max_epochs: 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
     """train.py's work: parse the config once, then train (`fit`)."""
-    run = parse_training(cfg)
-    if run.job.ckpt:
-        resume.checked_resume(cfg)  # before any data is generated or checked
-    return fit(run, Path(run_dir))
+    return fit(parse_training(cfg), Path(run_dir))
 
 
 def fit(run: CrossViewTraining, run_dir: Path) -> dict:
@@ -44,13 +40,13 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
     task = build_task(run.model, run.components, run.trainer.max_epochs)
     source = None
     if run.job.init_from:
-        source = resume.init_from(task, run.job.init_from, fresh=INIT_FROM_FRESH)
+        source = ckpt_io.init_from(task, run.job.init_from, fresh=INIT_FROM_FRESH)
     train_set = build(run.data, run.reader, "train", train=True, augment_seed=run.trainer.seed)
     val_set = build_eval(run.data, run.reader, run.data.val_split)
     task.validate_on(val_set.split)
     trainer = Trainer(run.trainer, run_dir, run.yaml)
     if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
-        resume.write_source(run_dir, source)
+        ckpt_io.write_source(run_dir, source)
     trainer.init_from = source
     best = trainer.fit(task, train_set, val_set, batch_size=run.data.batch_size,
                        val_batch_size=run.data.val_batch_size or None, resume=run.job.ckpt)

@@ -114,7 +114,7 @@ class MMDIPConfig:
 class DynamicDataConfig:
     name: str = "dynamic"  # dynamic (synthetic layout) | carla4 (authors' 4-panel) | emptycities (3-panel, eval)
     root: str | None = None  # dynamic: null = generate the synthetic layout on first use into the cache
-    split: str = "val"  # the split the retrieval / translation evaluation scores
+    split: str | None = "val"  # the split scored; emptycities: null = the images directly under root
     image_size: list[int] = field(default_factory=lambda: [128, 128])  # H, W every image is brought to
     val_batch_size: int = 8
     augment: bool = True  # horizontal flips in training

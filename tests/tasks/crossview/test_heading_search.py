@@ -192,12 +192,21 @@ def test_bad_heading_settings_fail_at_start(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_a_checkpoint_from_before_the_heading_keys_still_resumes_at_their_old_values():
-    from geoloc.launch import resume
+def test_a_checkpoint_from_before_the_heading_keys_still_resumes_at_their_old_values(tiny_cvusa, tmp_path):
+    """A config stored before dataset.fov / random_heading / heading_steps existed compares, in the task's canonical
+    form, equal to today's request at their defaults, and different from a narrower view."""
+    from omegaconf import OmegaConf
 
-    stored = {"dataset": {"name": "synthetic", "rotation_deg": 0.0}}
-    as_before = {"dataset": {"name": "synthetic", "rotation_deg": 0.0, "fov": 360, "random_heading": False,
-                             "heading_steps": 36}}
-    assert resume.config_differences(stored, as_before) == []
-    narrower = {"dataset": {**as_before["dataset"], "fov": 90.0}}
-    assert resume.config_differences(stored, narrower) == ["dataset.fov: (absent) → 90.0"]
+    from geoloc.launch import resume
+    from geoloc.tasks.crossview import RESUME_MAY_CHANGE, canonical_config
+
+    requested = compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={tmp_path}"])
+    stored = OmegaConf.to_container(requested, resolve=True)
+    for key in ("fov", "random_heading", "heading_steps"):
+        del stored["dataset"][key]
+    stored = OmegaConf.create(stored)
+    allowed = resume.RESUME_MAY_CHANGE + RESUME_MAY_CHANGE
+    assert resume.config_differences(canonical_config(stored), canonical_config(requested), allowed) == []
+    narrower = compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={tmp_path}", "dataset.fov=90"])
+    assert resume.config_differences(canonical_config(stored), canonical_config(narrower), allowed) == [
+        "dataset.fov: 360.0 → 90.0"]

@@ -1,7 +1,7 @@
 """Polar transforms: cached cv2.remap grids against a direct, vectorised numpy evaluation of the same formula.
 
 The baseline evaluates the DESIGN.md formula for every output pixel and samples bilinearly with numpy fancy
-indexing (no Python loop), as a plain numpy implementation would on every call. Issue 3 asks for >= 20x.
+indexing (no Python loop), as a plain numpy implementation would on every call. The target is >= 20x.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_polar.py [--repeats 20] [--threads 1]
 """

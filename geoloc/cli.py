@@ -1,18 +1,30 @@
 """The `geoloc` console script: `geoloc SUBCOMMAND key=value ...` (pyproject [project.scripts]).
 
-Each subcommand is a module with `USAGE` (text) and `main(args) -> exit code`; it is imported only when named,
-so `geoloc --help` works without the optional extras a subcommand needs.
+Every app is reachable from it:
+- train, evaluate, localize, export run the repository's Hydra entry points (train.py, evaluate.py, localize.py,
+  export.py) with the same arguments, so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`;
+- serve is a module with `USAGE` (text) and `main(args) -> exit code`, imported only when named, so
+  `geoloc --help` works without the optional extras a subcommand needs.
 """
 
 from __future__ import annotations
 
 import importlib
+import runpy
 import sys
+from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from geoloc.config import ConfigError, checked
 
+REPO = Path(__file__).resolve().parents[1]
+SCRIPTS = {  # name: (the entry point in the repository, what it does)
+    "train": ("train.py", "train a task (the embedded default: cross-view on synthetic data)"),
+    "evaluate": ("evaluate.py", "score a checkpoint on a split; save or load a gallery"),
+    "localize": ("localize.py", "street images against a saved gallery: top-k tiles, position, heading"),
+    "export": ("export.py", "a checkpoint's encoders as ONNX files"),
+}
 SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
     "serve": ("geoloc.apps.serve.command", "answer POST /localize and GET /health over HTTP", "serve"),
 }
@@ -20,8 +32,27 @@ SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
 
 def usage() -> str:
     lines = ["usage: geoloc SUBCOMMAND key=value ...   (geoloc SUBCOMMAND --help for its keys)", "", "subcommands:"]
-    lines += [f"  {name:8s}{what} (pip install -e \".[{extra}]\")" for name, (_, what, extra) in SUBCOMMANDS.items()]
+    lines += [f"  {name:10s}{what} (python {script})" for name, (script, what) in SCRIPTS.items()]
+    lines += [f"  {name:10s}{what} (pip install -e \".[{extra}]\")" for name, (_, what, extra) in SUBCOMMANDS.items()]
     return "\n".join(lines)
+
+
+def run_script(name: str, args: list[str]) -> int:
+    """Run the repository's entry point `name` as `python <script> args` would; its exit status."""
+    script = REPO / SCRIPTS[name][0]
+    if not script.is_file():
+        print(f"geoloc {name} runs {SCRIPTS[name][0]} and the conf/ folder of a geoloc checkout, and {REPO} holds "
+              f"none: install geoloc from its repository with pip install -e .", file=sys.stderr)
+        return 2
+    argv = sys.argv
+    sys.argv = [str(script), *args]
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    except SystemExit as exit_:
+        return exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
+    finally:
+        sys.argv = argv
+    return 0
 
 
 def parse_keys(args: list[str], schema: type, command: str):
@@ -39,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         print(usage())
         return 0
     name, args = argv[0], argv[1:]
+    if name in SCRIPTS:
+        return run_script(name, args)
     if name not in SUBCOMMANDS:
         print(f"geoloc: unknown subcommand {name!r}\n\n{usage()}", file=sys.stderr)
         return 2

@@ -124,7 +124,7 @@ class SimilarityBatches(PlaceBatches):
 
 @register("sampler", "shuffle")
 def shuffle(labels, batch_size: int, seed: int, rank: int, world_size: int, neighbours=None) -> ShuffleBatches:
-    """The default: a seeded permutation per epoch, as before (pairs of one place may share a batch)."""
+    """The default: the engine's seeded permutation per epoch (pairs of one place may share a batch)."""
     _check_ranks("shuffle", batch_size, rank, world_size)
     return ShuffleBatches(len(_check_labels("shuffle", labels)), batch_size, seed, rank, world_size)
 

@@ -147,11 +147,6 @@ def reduce_mean(value: float, device: torch.device) -> float:
     return (t / world_size()).item()
 
 
-def unwrap(model: torch.nn.Module) -> torch.nn.Module:
-    """The one place a DDP wrapper is taken off."""
-    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
-
-
 def cleanup() -> None:
     if is_dist():
         dist.destroy_process_group()

@@ -157,10 +157,6 @@ class GalleryIndex:
             self._index = _BUILDERS[kind](faiss, self.dim, self.params)
             _set_search_knobs(faiss, kind, self._index, self.params)
 
-    def set_nprobe(self, nprobe: int) -> None:
-        """IVF kinds: how many inverted lists a query visits (recall against speed)."""
-        self.set_search_params(nprobe=nprobe)
-
     def set_search_params(self, **knobs) -> None:
         """Change search-time knobs (``nprobe``, ``k_factor``, ``ef_search``) of a built index."""
         unknown = set(knobs) - {"nprobe", "k_factor", "ef_search"}

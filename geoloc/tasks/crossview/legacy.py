@@ -1,7 +1,7 @@
-"""Reading the configs of checkpoints written before the component registry (geoloc <= 0.1 layout), so
-`evaluate.py` still scores them: `model: {name: msae_vgg16, width, pretrained, batchnorm, msae, dim, ...}` becomes
-`backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}` and `model: {dim}`; the GMS queue's buffers moved
-from `queue.*` to `loss.queue.*`. The weights themselves are unchanged."""
+"""Checkpoint configs in the `msae_vgg16` format (one `model` section for the whole network), read in today's
+layout so `evaluate.py`, export and localize still use them: `model: {name: msae_vgg16, width, pretrained,
+batchnorm, msae, dim, ...}` becomes `backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}` and
+`model: {dim}`, and the GMS queue's buffers `queue.*` become `loss.queue.*`. The weights themselves are the same."""
 
 from __future__ import annotations
 

@@ -48,7 +48,7 @@ def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
         # rotating the aerial-like image by θ is a circular shift of the panorama by θ/360 of its width
         shift = int(round(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg) / 360.0 * street.shape[1]))
         street = np.roll(street, shift, axis=1)
-    if cfg.fov < 360.0:  # the camera's window on the north-aligned panorama; fov 360 draws nothing (as before)
+    if cfg.fov < 360.0:  # the camera's window on the north-aligned panorama; at fov 360 no random number is drawn
         heading = float(rng.uniform(0.0, 360.0)) if rng is not None and cfg.random_heading else 0.0
         street = north_window(street, cfg.fov, heading)
     return align_query(street, cfg, view), align_reference(aerial, cfg)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,14 +30,6 @@ from geoloc.vpr import Gallery, ORBExtractor, Vocabulary, fused_descriptors, spm
 def to_uint8(images: torch.Tensor) -> np.ndarray:
     """B x 3 x H x W in [0, 1] -> B x H x W x 3 uint8."""
     return (images.clamp(0, 1) * 255).round().byte().permute(0, 2, 3, 1).cpu().numpy()
-
-
-@dataclass
-class Codes:
-    bow: np.ndarray
-    seg: np.ndarray  # N x H x W uint8 maps, kept so SPM can be recomputed at other levels (Table IV)
-    places: np.ndarray
-    extra: dict = field(default_factory=dict)  # query only: images for figures, BoW of the raw dynamic image
 
 
 class Coder:

@@ -1,18 +1,19 @@
-"""Reading images from disk: complete files only (a truncated JPEG would decode with a grey fill)."""
+"""Reading images from disk: complete files only (a truncated or cut JPEG would decode with a grey fill)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from geoloc.data.validate import require_complete
+from geoloc.data.validate import decode_rgb
 
 
 def read_rgb(path: Path) -> np.ndarray:
-    require_complete(path)  # a truncated JPEG would decode with a grey fill and only a libjpeg warning
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise OSError(f"cannot decode image {path}")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    """The image file `path` as H×W×3 uint8 RGB; a missing, incomplete or corrupt file raises, naming it."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"image not found: {path}") from None
+    return decode_rgb(data, path)

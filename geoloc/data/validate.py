@@ -6,7 +6,8 @@ file", with no file name. So completeness is checked on the bytes, before decodi
   (an earlier one is libjpeg's "premature end of data segment": the rest of the image is lost);
 - a PNG must end with its IEND chunk;
 - an empty file, or one that is neither a JPEG, a PNG nor anything OpenCV decodes, is named as such.
-Then OpenCV decodes the whole image at full size (cv2 releases the GIL, so a thread pool runs decodes in parallel).
+Then the whole image is decoded at full size, strictly (`decode_rgb`: libjpeg-turbo in strict mode for JPEGs, OpenCV
+otherwise; both release the GIL, so a thread pool runs decodes in parallel).
 
 Files that passed are remembered by (size, mtime) in `$GEOLOC_CACHE/checked/<hash of root + split>.json`
 (default `~/.cache/geoloc/checked/`), never inside the dataset root, which may be read-only: a second start only
@@ -24,6 +25,7 @@ from typing import Callable
 
 import cv2
 import numpy as np
+import simplejpeg
 
 JPEG_SOI, JPEG_EOI = b"\xff\xd8", b"\xff\xd9"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -94,12 +96,37 @@ def content_problem(data: bytes) -> str | None:
     return None
 
 
-def _decode(data: bytes) -> np.ndarray | None:
-    # Full size, every channel: the same decoder the readers use, over the whole image.
+def _decoded(data: bytes) -> tuple[np.ndarray | None, str | None]:
+    """(H×W×3 uint8 RGB, None) for complete image bytes, else (None, what is wrong). JPEGs are decoded by
+    libjpeg-turbo in strict mode (simplejpeg), which refuses what libjpeg otherwise only warns about and fills
+    with grey: a scan cut short with an end marker appended, or a header that promises more pixels than the data
+    holds. Other formats go through OpenCV, whose PNG reader refuses a short or corrupt image stream."""
+    problem = content_problem(data)
+    if problem:
+        return None, problem
+    if data.startswith(JPEG_SOI):
+        try:
+            return simplejpeg.decode_jpeg(data, colorspace="RGB", strict=True), None
+        except ValueError as err:
+            return None, f"corrupt JPEG: {err} (libjpeg would fill the rest of the image with grey)"
     try:
-        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     except cv2.error:
-        return None
+        bgr = None
+    if bgr is None or bgr.size == 0:
+        if data.startswith(PNG_SIGNATURE):
+            return None, "corrupt image: does not decode"
+        return None, f"not an image: does not decode, and it starts with {data[:16]!r}"
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None
+
+
+def decode_rgb(data: bytes, name: str | Path) -> np.ndarray:
+    """Image bytes as H×W×3 uint8 RGB, complete or refused: DatasetFileError naming `name` and what is wrong."""
+    image, problem = _decoded(data)
+    if problem:
+        raise DatasetFileError(f"{name}: {problem}. Re-download or re-extract it (the start-up check "
+                               "dataset.check_files=decode lists every such file).")
+    return image
 
 
 def image_problem(path: Path) -> str | None:
@@ -110,15 +137,7 @@ def image_problem(path: Path) -> str | None:
         return "missing"
     except OSError as err:
         return f"unreadable ({err.strerror or err})"
-    problem = content_problem(data)
-    if problem:
-        return problem
-    img = _decode(data)
-    if img is None or img.size == 0:
-        if data.startswith((JPEG_SOI, PNG_SIGNATURE)):
-            return "corrupt image: does not decode"
-        return f"not an image: does not decode, and it starts with {data[:16]!r}"
-    return None
+    return _decoded(data)[1]
 
 
 def require_complete(path: str | Path) -> None:

@@ -11,9 +11,9 @@ import pytest
 from geoloc.data import validate
 from geoloc.data.validate import DatasetFileError, check_files, image_problem
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.datasets import build
 
 from conftest import REALDATA
+from helpers.crossview_runs import pairs_of
 
 
 def write_images(folder, n=6, size=(40, 56)):
@@ -76,12 +76,13 @@ def count_decodes(monkeypatch):
     shapes = []
 
     def counted(data):
-        img = real(data)
-        shapes.append(img.shape)
-        return img
+        img, problem = real(data)
+        if img is not None:
+            shapes.append(img.shape)
+        return img, problem
 
-    real = validate._decode
-    monkeypatch.setattr(validate, "_decode", counted)
+    real = validate._decoded
+    monkeypatch.setattr(validate, "_decoded", counted)
     return shapes
 
 
@@ -120,7 +121,7 @@ def test_unwritable_cache_only_costs_a_recheck(images, monkeypatch, tmp_path):
 def test_a_truncated_image_at_training_time_names_the_file(tiny_cvusa):
     cfg = CrossViewDataConfig(name="cvusa", root=str(tiny_cvusa), aerial_size=32, pano_size=[16, 64],
                               check_files="exists")
-    ds = build(cfg, "train", train=True)
+    ds = pairs_of(cfg, "train", train=True)
     aerial = tiny_cvusa / "bingmap/19/0000003.jpg"
     cut(aerial, len(aerial.read_bytes()) - 300)
     with pytest.raises(DatasetFileError, match=r"0000003.jpg: truncated JPEG: premature end"):
@@ -134,3 +135,43 @@ def test_a_truncated_image_at_training_time_names_the_file(tiny_cvusa):
 def test_real_dataset_images_pass():
     files = sorted(REALDATA.rglob("*.jpg")) + sorted(REALDATA.rglob("*.png"))
     assert files and [(f, image_problem(f)) for f in files] == [(f, None) for f in files]
+
+
+def cut_mid_scan(path) -> None:
+    """Cut a JPEG in the middle of its scan and append an end marker: every byte-level check passes (the first
+    FF D9 after the scan is the last), and libjpeg alone decodes it with the rest of the image grey."""
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 2] + b"\xff\xd9")
+
+
+def header_promises_more(path, height=4999, width=5000) -> None:
+    """A small JPEG whose frame header claims height x width: libjpeg alone returns a grey picture of that size."""
+    data = bytearray(path.read_bytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5:sof + 7] = height.to_bytes(2, "big")
+    data[sof + 7:sof + 9] = width.to_bytes(2, "big")
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("damage", [cut_mid_scan, header_promises_more])
+def test_a_jpeg_that_only_looks_complete_is_refused_at_start_up_and_when_read(images, tmp_path, damage):
+    jpg = images[0]
+    damage(jpg)
+    data = jpg.read_bytes()
+    assert validate.content_problem(data) is None  # the byte-level checks alone let it through
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is not None  # OpenCV fills it with grey
+    with pytest.raises(DatasetFileError, match=rf"{jpg} \(corrupt JPEG: Corrupt JPEG data: premature end"):
+        check_files(images, tmp_path / "img", "val")
+    from geoloc.data.io import read_rgb
+
+    with pytest.raises(DatasetFileError, match=rf"{jpg}: corrupt JPEG: .*premature end"):
+        read_rgb(jpg)
+
+
+def test_the_strict_decoder_gives_opencvs_pixels(images):
+    """Decoding through libjpeg-turbo's strict mode changes no pixel of a complete JPEG (the figures stay)."""
+    from geoloc.data.io import read_rgb
+
+    for path in images + sorted(REALDATA.glob("*/*/*/*.jpg"))[:4]:
+        expected = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        assert np.array_equal(read_rgb(path), expected), path

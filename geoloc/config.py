@@ -51,6 +51,7 @@ class TrainKeys:
     ckpt: str | None = None  # resume exactly from this last.pt, with the config stored in it
     init_from: str | None = None  # a new run (epoch 0) from this checkpoint's network weights
     figures: bool = True  # the task's pictures after training (cross-view: attention, top-5, recall curve)
+    rewind: bool = False  # resume in place from a checkpoint older than the run's last.pt, dropping later epochs
 
 
 @dataclass

@@ -53,6 +53,19 @@ class RunLogger:
         tmp.write_text("".join(kept))
         os.replace(tmp, path)
 
+    def holds(self, key: str) -> bool:
+        """Whether metrics.jsonl already has a row with `key` (e.g. a run resumed in its own folder)."""
+        path = self.run_dir / "metrics.jsonl"
+        if not self.enabled or not path.is_file():
+            return False
+        for line in path.read_text().splitlines():
+            try:
+                if key in json.loads(line):
+                    return True
+            except json.JSONDecodeError:
+                continue
+        return False
+
     def log(self, metrics: dict[str, Any], step: int, prefix: str = "") -> None:
         """Scalars to TensorBoard and one JSON line to metrics.jsonl."""
         if not self.enabled:

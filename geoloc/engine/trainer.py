@@ -242,7 +242,8 @@ class Trainer:
         val_loader = task.val_dataloaders(val_set, val_batch_size or batch_size, self.engine) if val_set else None
         monitor = self.monitor(task)
         # what selects best.pt, in the log beside the numbers, so a table over runs picks best epochs the same way
-        self.logger.log({"monitor": monitor, "monitor_mode": self.cfg.monitor_mode}, self.global_step, prefix="run/")
+        if not self.logger.holds("run/monitor"):  # once per log: a resume in place keeps the run's first row
+            self.logger.log({"monitor": monitor, "monitor_mode": self.cfg.monitor_mode}, self.global_step, prefix="run/")
 
         last_val: dict[str, float] = {}
         for epoch in range(self.epoch, self.cfg.max_epochs):

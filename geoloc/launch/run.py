@@ -31,13 +31,39 @@ def train(cfg: DictConfig) -> dict:
     """Train in `cfg.run_dir`, which the run owns while it lasts (geoloc/launch/rundir.py)."""
     try:
         package = task_package(cfg.task.name)
+        given = command_line(cfg)
+        cfg = without_hydra(cfg)
         with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
             canonical = getattr(package, "canonical_config", None)  # a task that can resume says how it compares
             if cfg.get("ckpt") and canonical is not None:  # before any data is generated or checked
-                resume.checked_resume(cfg, package.RESUME_MAY_CHANGE, canonical)
+                cfg = resume.resumed_config(cfg, package.RESUME_MAY_CHANGE, canonical, given)
             return package.train(cfg, run_dir)
     finally:
         dist.cleanup()
+
+
+def command_line(cfg: DictConfig) -> list[str] | None:
+    """The overrides the command line gave, as Hydra recorded them (None for a config composed in code without
+    its Hydra node)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        return list(HydraConfig.get().overrides.task)
+    if "hydra" in cfg:  # hydra.compose(..., return_hydra_config=True)
+        return list(cfg.hydra.overrides.task)
+    return None
+
+
+def without_hydra(cfg: DictConfig) -> DictConfig:
+    """`cfg` without Hydra's own node, which only a config composed with return_hydra_config holds."""
+    if "hydra" not in cfg:
+        return cfg
+    from omegaconf import OmegaConf, open_dict
+
+    plain = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+    with open_dict(plain):
+        del plain["hydra"]
+    return plain
 
 
 def evaluate(cfg: DictConfig) -> dict:

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import resume, run
@@ -33,7 +35,7 @@ def test_config_differences_skip_only_the_allow_list():
 def test_resume_with_a_changed_lr_or_dataset_root_is_refused_with_the_differences(finished_run, tmp_path):
     root, finished = finished_run
     other = tmp_path / "other"
-    with pytest.raises(ConfigError, match="resumes only with the config it was trained with") as err:
+    with pytest.raises(ConfigError, match="resumes the run with the config stored in it") as err:
         run.train(train_cfg(root, tmp_path / "resumed", "trainer.max_epochs=2", f"ckpt={finished / 'last.pt'}",
                             "optim.lr=0.01", f"dataset.root={other}"))
     message = str(err.value)
@@ -49,6 +51,54 @@ def test_resume_may_add_epochs_and_change_how_it_is_shown(finished_run, tmp_path
                         "trainer.progress=true", "trainer.log_every_n_steps=1", "trainer.pin_memory=false"))
     state = ckpt_io.load(tmp_path / "resumed" / "last.pt")
     assert state["epoch"] == 1 and state["global_step"] == 6  # 3 steps per epoch, continued from epoch 0
+
+
+def compose_as_hydra(overrides):
+    """A composed train config that records its command line, as Hydra does for train.py."""
+    from hydra import compose, initialize_config_dir
+
+    from conftest import CONF
+
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("train", overrides=overrides, return_hydra_config=True)
+
+
+def test_the_readme_resume_command_works_for_a_run_made_with_overrides(finished_run, tmp_path):
+    """`python train.py ckpt=RUN/last.pt hydra.run.dir=RUN trainer.max_epochs=N`, as the README writes it: the
+    overrides the run was made with are not repeated, and the run goes on with the stored config."""
+    root, finished = finished_run
+    resumed = tmp_path / "resumed"
+    shutil.copytree(finished, resumed)
+    run.train(compose_as_hydra([f"ckpt={resumed / 'last.pt'}", f"run_dir={resumed}", "trainer.max_epochs=2"]))
+    state = ckpt_io.load(resumed / "last.pt")
+    assert state["epoch"] == 1 and state["global_step"] == 6
+    stored = OmegaConf.create(state["config"])
+    assert stored.dataset.name == "cvusa" and stored.dataset.root == str(root)  # not the default synthetic data
+    assert stored.trainer.max_epochs == 2 and stored.model.dim == 16
+
+
+def test_a_key_the_command_line_changes_is_refused_by_name_and_only_it(finished_run, tmp_path):
+    root, finished = finished_run
+    with pytest.raises(ConfigError, match="resumes the run with the config stored in it") as err:
+        run.train(compose_as_hydra([f"ckpt={finished / 'last.pt'}", f"run_dir={tmp_path / 'r'}", "optim.lr=0.01"]))
+    listed = str(err.value).split("(stored → requested):")[1].split("Drop those")[0]
+    assert listed.strip() == "optim.lr: 0.0001 → 0.01"  # not the dataset, network... the command line left out
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_resume_in_place_from_an_older_checkpoint_is_refused_unless_asked_for(tiny_cvusa, tmp_path):
+    """ckpt=RUN/best.pt hydra.run.dir=RUN would rewind last.pt and metrics.jsonl to best.pt's epoch."""
+    run_dir = tmp_path / "run"
+    run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=2"))
+    older = run_dir / "epoch0.pt"
+    state = ckpt_io.load(run_dir / "last.pt")
+    ckpt_io.save_atomic({**state, "epoch": 0}, older)
+    rows = (run_dir / "metrics.jsonl").read_text()
+    with pytest.raises(ConfigError, match=r"epoch 0, but .*last.pt in the run dir .* is from epoch 1.*rewind=true"):
+        run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=2", f"ckpt={older}"))
+    assert (run_dir / "metrics.jsonl").read_text() == rows and ckpt_io.load(run_dir / "last.pt")["epoch"] == 1
+    run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=2", f"ckpt={older}", "rewind=true"))
+    assert ckpt_io.load(run_dir / "last.pt")["epoch"] == 1  # epoch 1 trained again, on purpose
 
 
 def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(finished_run, tmp_path):

@@ -31,6 +31,12 @@ def register_resolvers() -> None:
 
 
 class RefuseTakenRunDir(Callback):
+    """`role`: "training" (train.py: a folder with outputs only to resume it), "evaluation" or "localization"
+    (never a training's folder)."""
+
+    def __init__(self, role: str = "training"):
+        self.role = role
+
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
         from geoloc.engine.distributed import launch_rank
         from geoloc.launch.rundir import RunDirTaken, refuse_if_taken
@@ -38,7 +44,7 @@ class RefuseTakenRunDir(Callback):
         if launch_rank() > 0:  # ranks > 0 run in a throwaway Hydra dir and write nothing
             return
         try:
-            refuse_if_taken(config.hydra.run.dir, ckpt=config.get("ckpt"))
+            refuse_if_taken(config.hydra.run.dir, ckpt=config.get("ckpt"), role=self.role)
         except RunDirTaken as err:
             # Hydra turns a callback's exception into a warning and goes on; SystemExit stops it (exit status 1)
             raise SystemExit(f"RunDirTaken: {err}") from None

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import json
+import os
+import tempfile
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -74,16 +77,42 @@ def evaluate(cfg: DictConfig) -> dict:
     from geoloc.engine import checkpoint
 
     run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
-    with claimed(run_dir, ckpt=cfg.ckpt) if run_dir else contextlib.nullcontext():
+    with claimed(run_dir, role="evaluation") if run_dir else contextlib.nullcontext():
         refuse_existing_metrics_out(cfg)
         state = checkpoint.load(cfg.ckpt)
         stored = OmegaConf.create(state.get("config") or "{}")
-        return task_package(OmegaConf.select(stored, "task.name") or "crossview").evaluate(cfg, state)
+        metrics = task_package(OmegaConf.select(stored, "task.name") or "crossview").evaluate(cfg, state)
+        if cfg.get("metrics_out") and dist.is_main():
+            write_metrics(Path(cfg.metrics_out), metrics, overwrite=cfg.get("metrics_out_overwrite", False))
+        return metrics
 
 
 def refuse_existing_metrics_out(cfg: DictConfig) -> None:
-    """metrics_out= never replaces a file silently; checked before the evaluation, not after it."""
+    """metrics_out= never replaces a file silently; checked before the evaluation (and again as it is written)."""
     out = cfg.get("metrics_out")
     if out and Path(out).exists() and not cfg.get("metrics_out_overwrite", False):
         raise ConfigError(f"metrics_out={out} already exists; nothing was evaluated. Choose another file, or pass "
                           f"metrics_out_overwrite=true to replace it.")
+
+
+def write_metrics(out: Path, metrics: dict, overwrite: bool) -> None:
+    """The metrics as JSON in `out`, whole or not at all: written to a temp file beside it, then linked into place,
+    which fails if `out` appeared in the meantime (another evaluation with the same metrics_out) unless
+    `overwrite`, so no result is lost in silence."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(metrics, indent=2) + "\n")
+        if overwrite:
+            os.replace(tmp, out)
+            return
+        try:
+            os.link(tmp, out)
+        except FileExistsError:
+            raise ConfigError(f"metrics_out={out} was created by someone else while this evaluation ran; its "
+                              f"result is kept and this one is in nothing. Run again with another metrics_out, or "
+                              f"metrics_out_overwrite=true. These metrics: {json.dumps(metrics)}") from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

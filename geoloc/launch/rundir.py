@@ -34,7 +34,7 @@ def run_outputs(run_dir: Path) -> list[Path]:
     return sorted(p for pattern in RUN_OUTPUTS for p in run_dir.glob(pattern))
 
 
-def refuse_if_taken(run_dir: str | Path, ckpt: str | None = None) -> None:
+def refuse_if_taken(run_dir: str | Path, ckpt: str | None = None, role: str = "training") -> None:
     """Raise RunDirTaken when a live run holds `run_dir`, or when it holds a run's output and `ckpt` does not
     point into it (a resume in place). A missing folder is free. Writes nothing."""
     run_dir = Path(run_dir)
@@ -46,11 +46,11 @@ def refuse_if_taken(run_dir: str | Path, ckpt: str | None = None) -> None:
             _lock_or_refuse(fd, run_dir)
         finally:
             os.close(fd)  # closing drops the probe's lock
-    _refuse_output(run_dir, ckpt)
+    _refuse_output(run_dir, ckpt, role)
 
 
 @contextlib.contextmanager
-def claimed(run_dir: str | Path, ckpt: str | None = None) -> Iterator[Path]:
+def claimed(run_dir: str | Path, ckpt: str | None = None, role: str = "training") -> Iterator[Path]:
     """Own `run_dir` for the block: create it, lock it, refuse it when taken (see `refuse_if_taken`), remove
     temp files of a killed save. If the block fails before the run wrote anything (a config error, a missing
     dataset), the folder is removed, Hydra's `.hydra/` and log included. Ranks > 0 only get the path."""
@@ -65,7 +65,7 @@ def claimed(run_dir: str | Path, ckpt: str | None = None) -> Iterator[Path]:
         os.ftruncate(fd, 0)
         os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
         try:
-            _refuse_output(run_dir, ckpt)
+            _refuse_output(run_dir, ckpt, role)
             for pattern in STALE_TEMP:
                 for tmp in run_dir.glob(pattern):
                     tmp.unlink()
@@ -105,11 +105,19 @@ def _lock_or_refuse(fd: int, run_dir: Path) -> None:
         raise OSError(message) from err
 
 
-def _refuse_output(run_dir: Path, ckpt: str | None) -> None:
+def _refuse_output(run_dir: Path, ckpt: str | None, role: str = "training") -> None:
+    """A training may write into a run dir with outputs only to resume it (`ckpt` in it); an evaluation or a
+    localisation ("evaluation", "localization") never writes into a training's folder, whose .hydra/ record and
+    metrics it would mix with its own."""
     outputs = run_outputs(run_dir)
-    if not outputs or (ckpt and Path(ckpt).resolve().parent == run_dir.resolve()):
+    resumes = role == "training" and ckpt and Path(ckpt).resolve().parent == run_dir.resolve()
+    if not outputs or resumes:
         return
     names = ", ".join(str(p.relative_to(run_dir)) for p in outputs[:6])
+    if role != "training":
+        raise RunDirTaken(f"run dir {run_dir} belongs to a training run ({names}); this {role} stopped before "
+                          f"writing anything. An {role} writes its own folder: leave hydra.run.dir at its default "
+                          f"(a new outputs/<...>/<date>_<time>_<pid>) or choose one that holds no run.")
     last = run_dir / "last.pt"
     if last.is_file():
         ways = (f"To continue that run, resume it: ckpt={last} (add hydra.run.dir={run_dir} to keep writing there). "

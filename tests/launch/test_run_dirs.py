@@ -165,6 +165,24 @@ def test_train_py_refuses_a_taken_dir_before_hydra_writes_into_it_and_a_config_e
     assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_file() or p.name.startswith("20")]
 
 
+@pytest.mark.parametrize("script", ["evaluate.py", "localize.py"])
+def test_evaluate_and_localize_refuse_a_training_runs_folder(script, tmp_path):
+    """`evaluate.py ckpt=RUN/best.pt hydra.run.dir=RUN` would have Hydra replace the training's .hydra/ record."""
+    finished = tmp_path / "finished"
+    (finished / ".hydra").mkdir(parents=True)
+    (finished / ".hydra" / "overrides.yaml").write_text("- seed=7\n")
+    torch.save({}, finished / "best.pt")
+    extra = [f"gallery={tmp_path}", f"image={tmp_path}"] if script == "localize.py" else []
+    proc = subprocess.run([sys.executable, str(REPO / script), f"ckpt={finished / 'best.pt'}", *extra,
+                           f"hydra.run.dir={finished}"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 1 and "belongs to a training run" in proc.stderr, proc.stderr[-2000:]
+    assert (finished / ".hydra" / "overrides.yaml").read_text() == "- seed=7\n"
+    assert sorted(p.name for p in finished.iterdir()) == [".hydra", "best.pt"]
+    with pytest.raises(RunDirTaken, match="belongs to a training"):
+        run.evaluate(compose_evaluate([f"ckpt={finished / 'best.pt'}", f"run_dir={finished}"]))
+
+
 @pytest.mark.parametrize("mask,mode", [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)], ids=["022", "027", "002"])
 def test_checkpoints_get_the_umask_mode(tmp_path, mask, mode):
     before = os.umask(mask)
@@ -209,3 +227,16 @@ def test_metrics_out_is_not_overwritten_unless_asked(finished_run, tmp_path):
     run.evaluate(compose_evaluate([f"ckpt={finished / 'best.pt'}", f"metrics_out={out}", "progress=false",
                                    "metrics_out_overwrite=true", f"run_dir={tmp_path / 'e'}"]))
     assert json.loads(out.read_text())["num_queries"] == 8 and out.stat().st_mtime >= start - 1
+
+
+def test_two_evaluations_with_one_metrics_out_lose_no_result(tmp_path):
+    """The existence check runs before an evaluation and the write after it; a second evaluation that wrote the
+    same metrics_out in between is not overwritten in silence: this one fails, naming the file, with its numbers."""
+    out = tmp_path / "metrics.json"
+    run.write_metrics(out, {"R@1": 0.25}, overwrite=False)
+    with pytest.raises(ConfigError, match=r"created by someone else while this evaluation ran.*\"R@1\": 0.5"):
+        run.write_metrics(out, {"R@1": 0.5}, overwrite=False)
+    assert json.loads(out.read_text()) == {"R@1": 0.25}
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]  # no temp file left
+    run.write_metrics(out, {"R@1": 0.5}, overwrite=True)
+    assert json.loads(out.read_text()) == {"R@1": 0.5}

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -64,8 +63,8 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
 
 
 def evaluate(cfg: DictConfig, state: dict) -> dict:
-    """evaluate.py's work: rebuild model and transforms from the checkpoint's config, score a split, write
-    `metrics_out`."""
+    """evaluate.py's work: rebuild model and transforms from the checkpoint's config, score a split; the launcher
+    writes the metrics to `metrics_out`."""
     stored = stored_config(state)
     run = parse_evaluation(cfg, stored)
     task = with_weights(build_task(run.model, run.components, _max_epochs(stored)), state, run.job.ckpt)
@@ -92,10 +91,6 @@ def score(run: CrossViewEvaluation, task: CrossViewTask) -> dict:
     metrics.setdefault("num_references", eval_data.split.num_references)
     if dist.is_main():
         print_table(metrics, f"{eval_data.split.name} ({len(eval_data)} queries), ckpt {run.job.ckpt}")
-        if run.job.metrics_out:
-            out = Path(run.job.metrics_out)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
 
 

@@ -185,10 +185,9 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
     Phase 2, every reader (dynamic, carla4, emptycities): the place protocol of protocol.py, so the recall keys
     + num_queries, the BoW / SPM / dynamic-BoW rows, and L1 / L2 / PSNR / SSIM of the recovered queries against
     their static views; artefacts are reused from the run's vpr/ folder (vpr_dir). Phase 1: PA, MPA, MIoU, FWIoU
-    (needs labels). `cfg.ckpt` is the checkpoint (`state` its loaded contents, when the caller has them); writes
-    the JSON to `cfg.metrics_out` when given."""
+    (needs labels). `cfg.ckpt` is the checkpoint (`state` its loaded contents, when the caller has them); the
+    launcher writes the metrics to `metrics_out`."""
     ckpt_path = Path(cfg.ckpt)
-    metrics_out = cfg.get("metrics_out")
     task, task_cfg, stored = load_task(ckpt_path, state)
     data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
     is_joint = isinstance(task, JointTask)
@@ -212,8 +211,4 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
         conf = sum(batch_confusion(task.seg(b["dynamic"].to(device)).argmax(1), b["label"].to(device),
                                    task.num_classes).sum(0) for b in loader)
         metrics = confusion_metrics(conf[None])
-    if metrics_out:
-        out = Path(metrics_out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics

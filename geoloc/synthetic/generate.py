@@ -10,6 +10,8 @@ config). It is written first with `"complete": false` and rewritten with `true` 
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import multiprocessing as mp
 import os
@@ -65,16 +67,43 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
     if opts is not None:  # only the newer layouts' markers carry options, so older datasets stay valid
         marker["options"] = asdict(opts)
         WRITERS[layout].check(cfg, opts)
-    if _check_out(root, marker):
-        if layout == "cvusa" and not (root / LY.POSITIONS_FILE).exists():  # rendered before positions.csv existed
-            jobs = _jobs(layout, train, val)
-            LY.write_cvusa_positions(root, {s: [n for js, _, n in jobs if js == s] for s in ("train", "val")})
-        return root
+    with rendering(root):  # one process renders a folder; another waits, then finds it complete
+        if _check_out(root, marker):
+            if layout == "cvusa" and not (root / LY.POSITIONS_FILE).exists():  # rendered before positions.csv
+                jobs = _jobs(layout, train, val)
+                LY.write_cvusa_positions(root, {s: [n for js, _, n in jobs if js == s] for s in ("train", "val")})
+            return root
+        return _render(layout, root, marker, cfg, opts, train, val, seed, workers, progress)
+
+
+@contextlib.contextmanager
+def rendering(root: Path):
+    """Hold an exclusive lock on `<root>.lock` (beside the folder) while checking and rendering `root`. The OS drops
+    it when the process ends, kill -9 included; a run that finds it held waits for the render to finish."""
+    lock = root.with_name(root.name + ".lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"waiting for another process that is rendering {root} ...", flush=True)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _render(layout: str, root: Path, marker: dict, cfg, opts, train: int, val: int, seed: int, workers: int,
+            progress: bool) -> Path:
     root.mkdir(parents=True, exist_ok=True)
     _write_marker(root, marker, complete=False)
 
     jobs = WRITERS[layout].jobs(opts, train, val) if layout in WRITERS else _jobs(layout, train, val)
     done = root / PARTIAL
+    if done.is_dir():  # a render that was killed: its half-written files are ours to clear (we hold the lock)
+        for stale in root.rglob(".*.tmp"):
+            stale.unlink()
     done.mkdir(exist_ok=True)
     todo = [j for j in jobs if not (done / f"{j[2]:07d}.json").exists()]
     opts_dict = None if opts is None else asdict(opts)

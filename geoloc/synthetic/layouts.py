@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import io
 import os
+import secrets
 from pathlib import Path
 
 import cv2
@@ -29,8 +30,9 @@ DYNAMIC_DIRS = ("rgb_dynamic", "rgb_static", "label_static", "label_dynamic", "m
 
 
 def write_bytes(path: Path, data: bytes, atomic: bool = True) -> None:
-    """Write a file, creating its folder on first need (trying first saves a mkdir per file)."""
-    target = path.with_name(path.name + ".tmp") if atomic else path
+    """Write a file, creating its folder on first need (trying first saves a mkdir per file). Atomic writes go
+    through a temp name of this process's own, so two writers never share one."""
+    target = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp") if atomic else path
     try:
         f = open(target, "wb")
     except FileNotFoundError:

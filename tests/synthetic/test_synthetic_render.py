@@ -114,3 +114,42 @@ def test_dynamic_and_static_differ_only_at_agents_and_their_shadows(views):
         assert view["label_static"].max() <= 7
     # the query is another pose, time and traffic
     assert v[0]["pose"] != v[1]["pose"] and v[0]["conditions"].sun != v[1]["conditions"].sun
+
+
+def test_two_processes_rendering_one_cache_share_it(tmp_path):
+    """Two runs on an empty cache (a seed sweep on a shared one): one renders under the lock, the other waits and
+    reuses the folder; neither fails on the other's temp files, and the files are those of one render."""
+    import subprocess
+    import sys
+
+    from geoloc.synthetic import generate
+
+    root = tmp_path / "cache" / "cvusa"
+    code = ("import sys; from geoloc.synthetic import generate; "
+            "generate('cvusa', sys.argv[1], 6, 3, seed=3, preset='tiny', progress=False)")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(root)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    assert sum("waiting for another process" in out for out, _ in outs) <= 1
+    alone = generate("cvusa", tmp_path / "alone", 6, 3, seed=3, preset="tiny", progress=False)
+    files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(alone) for p in alone.rglob("*") if p.is_file())
+    assert not [f for f in files if f.name.endswith(".tmp")]
+    assert all((root / f).read_bytes() == (alone / f).read_bytes() for f in files)
+
+
+def test_a_render_waits_for_the_process_that_holds_the_folder(tmp_path):
+    import subprocess
+    import sys
+
+    from geoloc.synthetic.generate import rendering
+
+    root = tmp_path / "cvusa"
+    code = ("import sys; from geoloc.synthetic import generate; "
+            "generate('cvusa', sys.argv[1], 2, 1, preset='tiny', progress=False); print('rendered')")
+    with rendering(root):
+        proc = subprocess.Popen([sys.executable, "-u", "-c", code, str(root)], stdout=subprocess.PIPE, text=True)
+        assert proc.stdout.readline().startswith(f"waiting for another process that is rendering {root}")
+        assert proc.poll() is None and not root.exists()  # it waits, and writes nothing meanwhile
+    assert proc.stdout.readline().strip() == "rendered" and proc.wait(timeout=600) == 0

@@ -9,8 +9,12 @@ each run's last record; `--at best` the record of its best epoch: the best value
 trainer monitored (logged in metrics.jsonl as run/monitor and run/monitor_mode; `--monitor` picks another, highest
 first), the earliest of equal ones, as the trainer picks best.pt; `--at both` (default) prints both tables. The
 epoch column is the mean ± std of those epochs, counted from 0 as in metrics.jsonl, checkpoints and the trainer's `[epoch N]` lines.
-Runs are grouped by their Hydra overrides (`.hydra/overrides.yaml`, else the dir name) minus `seed=`; overrides
-that every run shares (dataset.root, ...) are left out of the row names. Recall values are shown in %; std is the
+Runs are grouped by their job's Hydra overrides (`.hydra/overrides.yaml` of the job folder, which MMDIP's phase1/
+and phase2/ logs sit below; else the dir name) minus `seed=`, and by phase; overrides that every run shares
+(dataset.root, ...) are left out of the row names. A job that failed (a .hydra/ folder without metrics.jsonl), a
+run that stopped before its last epoch (trainer.max_epochs in .hydra/config.yaml) or whose log ends in a cut
+line is left out of the means and listed under the tables; a damaged line elsewhere stops the tool, naming the
+file and line. Recall values are shown in %; std is the
 sample standard deviation (n - 1), blank for a single seed.
 """
 
@@ -28,6 +32,26 @@ AT = ("last", "best")
 TITLES = {"last": "last epoch", "best": "best epoch (highest {monitor} of each run)"}
 
 
+def rows(metrics_file: Path) -> tuple[list[dict], bool]:
+    """(the JSON rows of a metrics.jsonl, whether its last line was cut). A run killed while writing leaves a cut
+    last line, which is skipped (the run is then partial); a line that is not JSON anywhere else raises, naming the
+    file and line."""
+    lines = metrics_file.read_text().splitlines()
+    out, cut = [], False
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if number == len(lines):
+                cut = True
+                continue
+            raise ValueError(f"{metrics_file}:{number}: not a JSON line ({err.msg}): {line[:80]!r}. The file is "
+                             "damaged; remove that line or the run from the sweep.") from None
+    return out, cut
+
+
 def validations(metrics_file: Path) -> list[dict[str, float]]:
     """The run's validation records in epoch order, each with its `epoch`.
 
@@ -38,8 +62,7 @@ def validations(metrics_file: Path) -> list[dict[str, float]]:
     """
     by_epoch: dict[int, dict[str, float]] = {}
     pending, next_epoch = None, 0
-    for line in metrics_file.read_text().splitlines():
-        record = json.loads(line) if line.strip() else {}
+    for record in rows(metrics_file)[0]:
         val = {k[4:]: v for k, v in record.items() if k.startswith("val/") and isinstance(v, (int, float))}
         if val:
             pending = val
@@ -56,8 +79,7 @@ def validations(metrics_file: Path) -> list[dict[str, float]]:
 
 def recorded_monitor(metrics_file: Path) -> tuple[str, str] | None:
     """(metric, "max" | "min") that selected the run's best.pt, as the trainer logged it; None if it logged none."""
-    for line in metrics_file.read_text().splitlines():
-        record = json.loads(line) if line.strip() else {}
+    for record in rows(metrics_file)[0]:
         if "run/monitor" in record:
             return record["run/monitor"], record.get("run/monitor_mode", "max")
     return None
@@ -77,26 +99,69 @@ def pick(records: list[dict[str, float]], at: str, monitor: str, source: Path | 
     return max(scored, key=lambda r: sign * r[monitor])  # max() returns the first of equal maxima
 
 
-def run_overrides(run_dir: Path) -> list[str]:
-    saved = run_dir / ".hydra" / "overrides.yaml"
+def job_of(run_dir: Path, multirun_dir: Path) -> Path:
+    """The sweep job a metrics folder belongs to: the nearest folder up to the sweep's that Hydra wrote .hydra/
+    into (MMDIP's phase1/ and phase2/ log below their job's folder); the folder itself when none did."""
+    for folder in (run_dir, *run_dir.parents):
+        if (folder / ".hydra").is_dir():
+            return folder
+        if folder == multirun_dir:
+            break
+    return run_dir
+
+
+def run_overrides(job: Path) -> list[str]:
+    saved = job / ".hydra" / "overrides.yaml"
     if saved.is_file():
         return [str(x) for x in yaml.safe_load(saved.read_text()) or []]
-    name = run_dir.name.split("_", 1)[-1] if run_dir.name.split("_", 1)[0].isdigit() else run_dir.name
+    name = job.name.split("_", 1)[-1] if job.name.split("_", 1)[0].isdigit() else job.name
     return [x for x in name.split(",") if x]
 
 
-def collect(multirun_dir: Path, at: str = "last", monitor: str | None = None) -> list[tuple[list[str], dict]]:
-    """[(overrides, the run's last or best validation record)] for each run that validated at least once. The best
-    epoch is picked by `monitor` (max), else by the metric and mode each run recorded."""
-    runs = []
+def planned_epochs(job: Path, run_dir: Path) -> int | None:
+    """The epochs the run was asked for (trainer.max_epochs, capped by an MMDIP phase's own), from .hydra."""
+    saved = job / ".hydra" / "config.yaml"
+    if not saved.is_file():
+        return None
+    config = yaml.safe_load(saved.read_text()) or {}
+    epochs = (config.get("trainer") or {}).get("max_epochs")
+    phase = {"phase1": "segmentation", "phase2": "translation"}.get(run_dir.name)
+    if phase and epochs is not None:
+        own = ((config.get("task") or {}).get(phase) or {}).get("epochs")
+        epochs = min(epochs, own) if own is not None else epochs
+    return epochs
+
+
+def collect(multirun_dir: Path, at: str = "last", monitor: str | None = None,
+            problems: list[str] | None = None) -> list[tuple[list[str], dict]]:
+    """[(overrides, the run's last or best validation record)] for each complete run that validated. The best
+    epoch is picked by `monitor` (max), else by the metric and mode each run recorded. Jobs that failed (no
+    metrics.jsonl, or no validation) and runs that stopped before their last epoch are left out of the tables and
+    described in `problems`, so no job is dropped without a word."""
+    problems = [] if problems is None else problems
+    runs, seen = [], set()
     for metrics_file in sorted(multirun_dir.rglob("metrics.jsonl")):
+        run_dir = metrics_file.parent
+        job = job_of(run_dir, multirun_dir)
+        seen.add(job)
+        phase = f" ({run_dir.name})" if run_dir != job else ""
         records = validations(metrics_file)
         if not records:
+            problems.append(f"{job}{phase}: no validation in {metrics_file} (failed or killed before its first one)")
+            continue
+        planned, cut = planned_epochs(job, run_dir), rows(metrics_file)[1]
+        if cut or (planned is not None and records[-1]["epoch"] + 1 < planned):
+            problems.append(f"{job}{phase}: partial, validated up to epoch {records[-1]['epoch']} of "
+                            f"{planned if planned is not None else '?'}{' (its last line was cut)' if cut else ''}")
             continue
         chosen, mode = (monitor, "max") if monitor else (recorded_monitor(metrics_file) or (None, "max"))
         if at != "last" and chosen is None:
             raise ValueError(f"{metrics_file} records no monitored metric (a run by an older geoloc): pass --monitor")
-        runs.append((run_overrides(metrics_file.parent), pick(records, at, chosen, metrics_file, mode)))
+        overrides = run_overrides(job) + ([f"phase={run_dir.name}"] if phase else [])
+        runs.append((overrides, pick(records, at, chosen, metrics_file, mode)))
+    for hydra in sorted(multirun_dir.rglob(".hydra")):
+        if hydra.parent not in seen and hydra.parent != multirun_dir:
+            problems.append(f"{hydra.parent}: failed, no metrics.jsonl (see the job's log there)")
     return runs
 
 
@@ -119,9 +184,11 @@ def fmt(values: list[float], percent: bool) -> str:
     return f"{mean:.2f} ± {statistics.stdev(values) * scale:.2f}"
 
 
-def table(groups: dict[str, list[dict[str, float]]], metrics: list[str] | None = None) -> str:
+def table(groups: dict[str, list[dict[str, float]]], metrics: list[str] | None = None,
+          problems: list[str] = ()) -> str:
     if not groups:
-        raise ValueError("no run with a validation record (metrics.jsonl with val/ keys) found")
+        raise ValueError("no complete run with a validation record (metrics.jsonl with val/ keys) found"
+                         + "".join(f"\n- {p}" for p in problems))
     if metrics is None:
         first = next(iter(groups.values()))[0]
         metrics = [k for k in first if k.startswith("R@")] or [k for k in first if k != "epoch"]
@@ -135,16 +202,24 @@ def table(groups: dict[str, list[dict[str, float]]], metrics: list[str] | None =
 
 
 def tables(multirun_dir: Path, at: str = "both", monitor: str | None = None, metrics: list[str] | None = None) -> str:
-    """One table for `at` = last or best; for both, each under a markdown heading."""
+    """One table for `at` = last or best; for both, each under a markdown heading. Failed and partial jobs are
+    listed after the tables."""
+    problems: list[str] = []
     if at in AT:
-        return table(group(collect(multirun_dir, at, monitor)), metrics)
-    recorded = {recorded_monitor(f) for f in multirun_dir.rglob("metrics.jsonl")} - {None}
-    named = monitor or (next(iter(recorded))[0] if len(recorded) == 1 else "the monitored metric")
-    parts = []
-    for one in AT:
-        parts.append(f"### {TITLES[one].format(monitor=named)}\n\n"
-                     + table(group(collect(multirun_dir, one, monitor)), metrics))
-    return "\n\n".join(parts)
+        runs = collect(multirun_dir, at, monitor, problems)
+        text = table(group(runs), metrics, problems)
+    else:
+        recorded = {recorded_monitor(f) for f in multirun_dir.rglob("metrics.jsonl")} - {None}
+        named = monitor or (next(iter(recorded))[0] if len(recorded) == 1 else "the monitored metric")
+        parts = []
+        for one in AT:
+            problems = []
+            runs = collect(multirun_dir, one, monitor, problems)
+            parts.append(f"### {TITLES[one].format(monitor=named)}\n\n" + table(group(runs), metrics, problems))
+        text = "\n\n".join(parts)
+    if problems:
+        text += "\n\nNot in the tables:\n" + "\n".join(f"- {p}" for p in problems)
+    return text
 
 
 def main(argv: list[str] | None = None) -> str:

@@ -187,3 +187,54 @@ def test_the_readme_table_2_sweep_runs_every_ablation_row(tiny_cvusa, tmp_path):
     text = aggregate_sweep.main([str(sweep)])
     for row in ("ablation=full", "ablation=no_ipt", "ablation=no_msae", "ablation=no_gms"):
         assert f"| {row} | 1 |" in text
+
+
+def _job(root, name, overrides, max_epochs=4):
+    """A sweep job's folder as Hydra writes it before the job runs: .hydra/ with its overrides and config."""
+    job = root / name
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    (job / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"trainer": {"max_epochs": max_epochs}}))
+    return job
+
+
+def test_failed_and_partial_jobs_are_reported_not_dropped(tmp_path):
+    for seed in (0, 1):
+        job = _job(tmp_path, str(seed), ["lr=1", f"seed={seed}"])
+        (job / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _epochs(
+            [(e, .1 * (e + 1), .5) for e in range(4)])))
+    _job(tmp_path, "2", ["lr=1", "seed=2"])  # failed at start-up: Hydra's folder, no metrics
+    killed = _job(tmp_path, "3", ["lr=1", "seed=3"])
+    text = "".join(json.dumps(r) + "\n" for r in _epochs([(0, .9, .9), (1, .9, .9)]))
+    (killed / "metrics.jsonl").write_text(text + '{"step": 30, "val/R@1": 0.')  # killed mid-line, after epoch 1
+    out = aggregate_sweep.main([str(tmp_path), "--at", "last"])
+    assert "| (base) | 2 |" in out  # the two complete seeds; the killed 0.9 does not enter the mean
+    assert f"{tmp_path / '2'}: failed, no metrics.jsonl" in out
+    assert f"{tmp_path / '3'}: partial, validated up to epoch 1 of 4 (its last line was cut)" in out
+
+
+def test_a_damaged_line_names_the_file_and_line(tmp_path):
+    job = _job(tmp_path, "0", ["seed=0"])
+    good = [json.dumps(r) for r in _epochs([(0, .1, .5), (1, .2, .5)])]
+    (job / "metrics.jsonl").write_text("\n".join([good[0], "{not json", *good[1:]]) + "\n")
+    with pytest.raises(ValueError, match=rf"{job / 'metrics.jsonl'}:2: not a JSON line"):
+        aggregate_sweep.main([str(tmp_path)])
+
+
+def test_an_mmdip_sweep_is_grouped_by_its_jobs_overrides_and_phase(tmp_path):
+    """MMDIP logs into phase1/ and phase2/ below the job's folder, which alone holds .hydra/: two learning rates
+    are two rows per phase, never averaged as if they were seeds."""
+    for number, (lr, seed) in enumerate([(1e-3, 0), (1e-3, 1), (1e-2, 0), (1e-2, 1)]):
+        job = _job(tmp_path, str(number), [f"task.segmentation.lr={lr}", f"seed={seed}"], max_epochs=2)
+        for phase, metric in (("phase1", "MIoU"), ("phase2", "SSIM")):
+            (job / phase).mkdir()
+            records = [{"step": 0, "run/monitor": metric, "run/monitor_mode": "max"}]
+            for epoch in range(2):
+                records += [{"step": epoch + 1, f"val/{metric}": lr * 100 + seed / 10 + epoch},
+                            {"step": epoch + 1, "train/epoch_epoch": epoch}]
+            (job / phase / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    out = aggregate_sweep.main([str(tmp_path), "--at", "last"])
+    for lr in ("0.001", "0.01"):
+        for phase in ("phase1", "phase2"):
+            assert f"| task.segmentation.lr={lr} phase={phase} | 2 |" in out
+    assert "Not in the tables" not in out

@@ -7,7 +7,7 @@ import torch
 from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
+from geoloc.tasks.crossview.data_config import parse_dataset
 
 from hydra.errors import MissingConfigException
 

@@ -15,7 +15,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import resume, run
 from geoloc.tasks.crossview.run import INIT_FROM_FRESH
 
-from helpers.crossview_runs import train_cfg, train_until_killed, task_of
+from helpers.crossview_runs import train_cfg, task_of
 
 
 def test_config_differences_skip_only_the_allow_list():
@@ -157,25 +157,3 @@ def rows(run_dir):
     """metrics.jsonl without the wall-clock columns."""
     lines = (run_dir / "metrics.jsonl").read_text().splitlines()
     return [{k: v for k, v in json.loads(x).items() if k != "time" and "samples_per_s" not in k} for x in lines]
-
-
-def test_the_metrics_log_has_one_row_per_step_across_a_kill_and_resume(tiny_cvusa, tmp_path, monkeypatch):
-    full = tmp_path / "full"
-    run.train(train_cfg(tiny_cvusa, full, "trainer.max_epochs=2", "trainer.log_every_n_steps=1"))
-
-    killed = tmp_path / "killed"  # the same run, killed in its second epoch (3 steps per epoch)
-    train_until_killed(train_cfg(tiny_cvusa, killed, "trainer.max_epochs=2", "trainer.log_every_n_steps=1"),
-                       monkeypatch, global_step=5)
-    assert ckpt_io.load(killed / "last.pt")["global_step"] == 3
-    assert [r["step"] for r in rows(killed)][-2:] == [4, 5]  # rows of epoch 1 after the checkpoint
-    with open(killed / "metrics.jsonl", "a") as f:
-        f.write('{"step": 6, "train/lo')  # and a line cut by the kill
-
-    run.train(train_cfg(tiny_cvusa, killed, "trainer.max_epochs=2", "trainer.log_every_n_steps=1",
-                        f"ckpt={killed / 'last.pt'}"))
-    assert rows(killed) == rows(full)  # one row per step, as if never killed (CPU resume is bit-exact)
-
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    events = EventAccumulator(str(killed / "tb")).Reload()
-    assert [e.step for e in events.Scalars("train/loss")] == [1, 2, 3, 4, 5, 6]  # purge_step hid 4 and 5

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.datasets.common import pairs_split, require_root
-from geoloc.datasets.positions import read_positions
+from geoloc.data.positions import read_positions
 from geoloc.registry import register
 
 CVUSA_SPLITS = {"train": "train-19zl.csv", "val": "val-19zl.csv"}
@@ -58,7 +58,7 @@ def _cvusa_row(row: list[str], where: str) -> tuple[str, str]:
 
 
 def cvusa_layout_split(name: str, root, split: str) -> RetrievalSplit:
-    """CVUSA's split files, with the optional positions.csv (geoloc/datasets/positions.py)."""
+    """CVUSA's split files, with the optional positions.csv (geoloc/data/positions.py)."""
     pairs = cvusa_pairs(root, split)
     return pairs_split(name, root, pairs, positions=read_positions(Path(root), [street for street, _ in pairs]))
 

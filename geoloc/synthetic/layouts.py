@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import scipy.io
 
-from geoloc.datasets.positions import POSITIONS_FILE, positions_text
+from geoloc.data.positions import POSITIONS_FILE, positions_text
 
 CVUSA_SPLITS = {"train": "splits/train-19zl.csv", "val": "splits/val-19zl.csv"}
 DYNAMIC_HEADER = "sample,place,role,x,y,yaw,sun_azimuth,sun_elevation\n"
@@ -77,7 +77,7 @@ def write_cvusa_splits(root: Path, numbers: dict) -> None:
 
 
 def write_cvusa_positions(root: Path, numbers: dict) -> None:
-    """positions.csv (geoloc/datasets/positions.py): each place's made-up UTM position, as CVACT's layout has."""
+    """positions.csv (geoloc/data/positions.py): each place's made-up UTM position, as CVACT's layout has."""
     rows = [(cvusa_files(n)[1], *place_utm(n)) for split in ("train", "val") for n in numbers[split]]
     write_bytes(root / POSITIONS_FILE, positions_text(rows, "xy").encode())
 

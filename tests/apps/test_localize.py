@@ -13,7 +13,7 @@ from geoloc.apps.localize import Localizer, read_street
 from geoloc.config import ConfigError
 from geoloc.datasets.cvact import cvact
 from geoloc.datasets.cvusa import cvusa
-from geoloc.datasets.positions import positions_text, read_positions
+from geoloc.data.positions import positions_text, read_positions
 from geoloc.launch import run
 from geoloc.synthetic import generate
 from geoloc.synthetic.layouts import place_utm

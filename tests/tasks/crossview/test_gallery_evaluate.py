@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from geoloc.config import ConfigError
+from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval import GalleryIndex, recall_at_k
+from geoloc.eval.retrieval_metrics import index_metrics
 from geoloc.launch import run
-from geoloc.tasks.crossview.gallery import recall_from_index
 
 from conftest import TINY, compose_evaluate, compose_train
 
@@ -51,17 +53,19 @@ def test_gallery_config_errors(trained, tmp_path):
         evaluate(tmp_path, trained, f"gallery.load={tmp_path / 'none'}")
 
 
-def test_recall_from_index_matches_recall_at_k_and_ivfpq_stays_close():
+def test_index_metrics_match_recall_at_k_and_ivfpq_stays_close():
     g = torch.Generator().manual_seed(0)
     reference = torch.nn.functional.normalize(torch.randn(2000, 32, generator=g), dim=1)
     query = torch.nn.functional.normalize(reference + 0.15 * torch.randn(2000, 32, generator=g), dim=1)
     exact = recall_at_k(query, reference)
     assert 0.2 < exact["R@1"] < 1.0  # neither trivial nor hopeless
+    split = RetrievalSplit("pairs", "/data", [f"q{i}" for i in range(2000)], [f"r{i}" for i in range(2000)],
+                           np.arange(2000))
     for backend in ("torch", "faiss"):
         if backend == "faiss":
             pytest.importorskip("faiss")
         index = GalleryIndex(32, backend=backend).add(reference)
-        assert recall_from_index(index, query) == exact
+        assert index_metrics(index, query, split) == exact
     ivfpq = GalleryIndex(32, backend="faiss", kind="ivfpq", nlist=16, m=8, nbits=6, nprobe=16).add(reference)
-    approx = recall_from_index(ivfpq, query)
+    approx = index_metrics(ivfpq, query, split)
     assert approx["R@1%"] > 0.8 * exact["R@1%"]

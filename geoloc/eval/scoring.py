@@ -39,6 +39,7 @@ __all__ = ["QUERY_CHUNK", "SCORE_BUDGET", "Ranking", "check_chunk", "rank", "rel
 
 QUERY_CHUNK = 1024
 SCORE_BUDGET = 1 << 25  # scores in one query chunk x reference block
+COMPARE_TARGETS = 4  # up to this many targets per query are counted by comparison, more by one sort per block
 
 
 def check_chunk(chunk_size: int | None) -> int:
@@ -98,7 +99,7 @@ def _excluded(tables: list[torch.Tensor], ignored_references: torch.Tensor | Non
 
 def _count_above(scores: torch.Tensor, excluded: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """(c, T) counts of the references not excluded with a score strictly above each target (c, T)."""
-    if targets.shape[1] <= 4:
+    if targets.shape[1] <= COMPARE_TARGETS:
         return torch.stack([((scores > targets[:, t:t + 1]) & ~excluded).sum(dim=1)
                             for t in range(targets.shape[1])], dim=1)
     # Many targets per query (AP over a building's images): one sort, then a binary search per target.

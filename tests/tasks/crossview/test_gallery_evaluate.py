@@ -69,3 +69,38 @@ def test_index_metrics_match_recall_at_k_and_ivfpq_stays_close():
     ivfpq = GalleryIndex(32, backend="faiss", kind="ivfpq", nlist=16, m=8, nbits=6, nprobe=16).add(reference)
     approx = index_metrics(ivfpq, query, split)
     assert approx["R@1%"] > 0.8 * exact["R@1%"]
+
+
+@pytest.mark.parametrize("backend", ["torch", "faiss"])
+def test_a_saved_gallery_scores_every_image_of_the_building(monkeypatch, tmp_path, backend):
+    """University-1652 satellite -> drone: each satellite query's relevant references are all the drone images of
+    its building. The saved gallery scores them as the exact path does (R@K and AP); ranking against the one
+    "positive" drone image instead would miss every query whose first image is not on top."""
+    if backend == "faiss":
+        pytest.importorskip("faiss")
+    from types import SimpleNamespace
+
+    from geoloc.eval.retrieval_metrics import split_metrics
+    from geoloc.tasks.crossview import gallery as crossview_gallery
+    from geoloc.tasks.crossview.datasets import EvalData
+    from geoloc.tasks.crossview.gallery import GalleryConfig
+
+    g = torch.Generator().manual_seed(0)
+    buildings, views = 4, 5
+    query = torch.nn.functional.normalize(torch.randn(buildings, 16, generator=g), dim=1)
+    reference = torch.nn.functional.normalize(query.repeat_interleave(views, 0)
+                                              + 0.3 * torch.randn(buildings * views, 16, generator=g), dim=1)
+    labels = np.arange(buildings).repeat(views)
+    split = RetrievalSplit("u1652/satellite_to_drone", tmp_path, [f"s{i}.jpg" for i in range(buildings)],
+                           [f"d{j}.jpg" for j in range(buildings * views)], np.arange(buildings) * views,
+                           query_labels=np.arange(buildings), reference_labels=labels, query_view="aerial")
+    monkeypatch.setattr(crossview_gallery, "encode_split", lambda task, engine, data, batch_size,
+                        sides=("query", "reference"): {k: {"query": query, "reference": reference}[k] for k in sides})
+    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=16))
+    engine = SimpleNamespace(device=torch.device("cpu"))
+    exact = split_metrics(query, reference, split)
+    positive_only = recall_at_k(query, reference, positives=split.positives)
+    assert exact["R@1"] == 1.0 and positive_only["R@1"] < 0.5  # the building is on top, its first image is not
+    for cfg in (dict(save=str(tmp_path / "g"), backend=backend), dict(load=str(tmp_path / "g"))):
+        got = crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), {})
+        assert {k: got[k] for k in exact} == exact

@@ -17,7 +17,7 @@ import pytest
 import torch
 from geoloc.apps.localize import Localizer, read_street
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.eval import GalleryIndex, recall_at_k
+from geoloc.eval import recall_at_k
 from geoloc.eval.scoring import rank, top_k
 from geoloc.launch import run
 from geoloc.registry import register

@@ -16,6 +16,8 @@ so a tie counts in the query's favour. The same count against other targets give
 - AP: each relevant g's count of the non-relevant references above s_ig gives its position in the ranking.
 Each target is the row-wise product sum(q_i * r_g) (max over K first), compared with the block products
 q_chunk @ r_block.T; a relevant reference never counts against itself, whatever rounding the two products got.
+Ties are ties of this arithmetic: a non-relevant duplicate of a relevant reference may score a last bit above
+the target; products that are exact in any order (the tests' ties) tie on every path and every blocking.
 
 **Top-k** lists are best first, the lower reference index first among equal scores, whatever the blocking.
 

@@ -2,15 +2,19 @@
 
 The one-to-one datasets (CVUSA, CVACT) are the special case positives = arange(Q). VIGOR adds semi-positives
 (references that contain the query's location off centre) and GPS; University-1652 adds labels (every image of
-the query's building is relevant). The conventions of the metrics that read these fields are in DESIGN.md
-("Retrieval with positives").
+the query's building is relevant). Which references are relevant to a query is said here once, by
+`RetrievalSplit.relevance` (geoloc/data/relevance.py), and every metric path ranks by it (DESIGN.md "Relevance is
+a property of the split").
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+
+from geoloc.data.relevance import Relevance
 
 QUERY_VIEWS = ("panorama", "sphere", "image", "aerial")
 
@@ -32,6 +36,8 @@ class RetrievalSplit:
     perspective photo, e.g. a University-1652 drone view, which no polar transform applies to) or "aerial" (the
     query is the aerial image and the references are photos: University-1652's satellite -> drone; each image is
     still encoded by its own view's branch).
+    relevance_radius_m: None, or the VPR convention: a query's positive and every reference within this many
+    metres of it are relevant (needs positions; `relevance`).
     """
 
     name: str
@@ -47,6 +53,7 @@ class RetrievalSplit:
     query_labels: np.ndarray | None = None
     reference_labels: np.ndarray | None = None
     query_view: str = "panorama"  # panorama | sphere | image | aerial: see above
+    relevance_radius_m: float | None = None  # VPR: every reference within this radius is relevant too
 
     def __post_init__(self):
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731  (frozen: set once, here)
@@ -69,6 +76,14 @@ class RetrievalSplit:
         for key, rows in (("query_xy", q), ("reference_xy", n)):
             if getattr(self, key) is not None:
                 put(key, self._xy(key, getattr(self, key), rows))
+        if self.relevance_radius_m is not None:
+            radius = float(self.relevance_radius_m)
+            if not np.isfinite(radius) or radius < 0 or self.positions()[0] is None:
+                raise ValueError(f"{self._where()}: relevance_radius_m={self.relevance_radius_m} needs query and "
+                                 "reference positions and a finite radius >= 0 (metres)")
+            if self.query_labels is not None:
+                raise ValueError(f"{self._where()}: give labels or relevance_radius_m, not both: each defines "
+                                 "which references are relevant")
         if (self.query_labels is None) != (self.reference_labels is None):
             raise ValueError(f"{self._where()}: give query_labels and reference_labels together, or neither")
         if self.query_labels is not None:
@@ -81,11 +96,37 @@ class RetrievalSplit:
                                  f"but its positive reference {self.positives[i]} has label "
                                  f"{self.reference_labels[self.positives[i]]} ({len(wrong)} such queries)")
 
+    @cached_property
+    def relevance(self) -> Relevance:
+        """Which references are relevant to each query, the one definition every metric ranks by: with labels,
+        every reference of the query's label (University-1652); with ``relevance_radius_m``, the positive and
+        every reference within that radius (VPR); otherwise the positive (the one-to-one data, VIGOR), the
+        semi-positives set aside by VIGOR's hit rate only."""
+        if self.query_labels is not None:
+            return Relevance.from_labels(self.query_labels, self.reference_labels)
+        if self.relevance_radius_m is not None:
+            kind, query_positions, reference_positions = self.positions()
+            return Relevance.within_radius(self.positives, query_positions, reference_positions, kind,
+                                           self.relevance_radius_m)
+        if self.one_to_one:
+            return Relevance.one_to_one(self.num_queries, self.num_references)
+        return Relevance.from_positives(self.positives, self.num_references, self.semi_positives)
+
+    def positions(self) -> tuple[str | None, np.ndarray | None, np.ndarray | None]:
+        """(kind, query positions, reference positions): "latlon" (degrees: VIGOR's file names, a positions.csv
+        in degrees), "xy" (metres, e.g. CVACT's UTM), or (None, None, None) when the dataset has none."""
+        if self.reference_latlon is not None and self.query_latlon is not None:
+            return "latlon", self.query_latlon, self.reference_latlon
+        if self.reference_xy is not None and self.query_xy is not None:
+            return "xy", self.query_xy, self.reference_xy
+        return None, None, None
+
     @property
     def one_to_one(self) -> bool:
         """Query i matches reference i and nothing else: CVUSA / CVACT."""
         return (self.num_queries == self.num_references and self.semi_positives is None
-                and self.query_labels is None and bool((self.positives == np.arange(self.num_queries)).all()))
+                and self.query_labels is None and self.relevance_radius_m is None
+                and bool((self.positives == np.arange(self.num_queries)).all()))
 
     def labels(self) -> np.ndarray:
         """(Q,) the place label of each query: its positive reference (queries of one place share it)."""

@@ -8,22 +8,59 @@
   An all-zero row has no direction and raises.
 - Not collapsed: ties count in the query's favour, so a network mapping every image to one point would score
   R@1 = 100%. When the reference spread (sum over dimensions of the standard deviation) is below
-  ``COLLAPSE_SPREAD`` the recall keys are reported as 0 with a warning.
+  ``COLLAPSE_SPREAD``, every metric reports its worst value with a warning (`geoloc.eval.keys.guarded`).
 
-`check_descriptors` and `guarded_recall` are the one place the validation and gallery paths take these checks from.
+`checked_pair` is what every scorer path (`geoloc.eval.scoring`, the FAISS backend, the gallery index) takes its
+descriptors through; `check_descriptors` gives validation and the gallery paths the reference spread.
 """
 from __future__ import annotations
 
-import warnings
-from typing import Callable, Iterable
-
+import numpy as np
 import torch
 
-__all__ = ["COLLAPSE_SPREAD", "UNIT_TOLERANCE", "check_descriptors", "descriptor_spread", "guarded_recall",
-           "require_finite", "unit_rows"]
+from geoloc.data.relevance import Relevance
+
+__all__ = ["COLLAPSE_SPREAD", "UNIT_TOLERANCE", "as_float_tensor", "check_descriptors", "checked_pair",
+           "descriptor_spread", "require_finite", "unit_rows"]
 
 UNIT_TOLERANCE = 1e-3  # above float32 rounding at any dimension, and fp16/bf16 outputs get re-normalised
 COLLAPSE_SPREAD = 1e-4
+
+
+def as_float_tensor(x, name: str, ndims: tuple[int, ...] = (2,)) -> torch.Tensor:
+    """numpy array or tensor -> floating tensor (float64 stays float64; anything else becomes float32), detached.
+
+    ``ndims``: the accepted numbers of dimensions (2: N x D; 3: Q x K x D, K candidates per query)."""
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(x)
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch tensor or a numpy array, got {type(x).__name__}")
+    if x.ndim not in ndims:
+        shapes = " or ".join({2: "N x D", 3: "Q x K x D"}[n] for n in ndims)
+        raise ValueError(f"{name} must be {shapes}, got shape {tuple(x.shape)}")
+    if not x.is_floating_point():
+        x = x.float()
+    return x.detach()
+
+
+def checked_pair(query, reference, one_to_one: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """(query, reference) as unit rows of one floating dtype, the query on the reference's device.
+
+    query: Q x D or Q x K x D (K candidates of each query, each candidate a row); reference: N x D. Tensors or
+    numpy arrays. Raises on empty or mismatched inputs (``one_to_one``: fewer references than queries), then on
+    non-finite or all-zero rows (`unit_rows`)."""
+    q = as_float_tensor(query, "query", ndims=(2, 3))
+    r = as_float_tensor(reference, "reference")
+    if q.shape[0] == 0 or r.shape[0] == 0 or q.shape[1:-1].numel() == 0:
+        raise ValueError(f"empty descriptors: query {tuple(q.shape)}, reference {tuple(r.shape)}")
+    if q.shape[-1] != r.shape[1]:
+        raise ValueError(f"query and reference dimensions differ: {q.shape[-1]} vs {r.shape[1]}")
+    if one_to_one:
+        Relevance.one_to_one(q.shape[0], r.shape[0])  # raises when a query has no reference of its own
+    dtype = torch.promote_types(q.dtype, r.dtype)
+    q = q.to(r.device, dtype)
+    flat = unit_rows(q.reshape(-1, q.shape[-1]), "query")
+    return flat.reshape(q.shape), unit_rows(r.to(dtype), "reference")
 
 
 def _norms(x: torch.Tensor) -> torch.Tensor:
@@ -78,20 +115,3 @@ def check_descriptors(query: torch.Tensor, reference: torch.Tensor | None = None
         return None
     require_finite(reference, "reference")
     return descriptor_spread(reference)
-
-
-def guarded_recall(compute: Callable[[], dict], reference_spread: float, ks: Iterable[int] = (1, 5, 10),
-                   collapsed: dict | None = None) -> dict:
-    """``compute()``'s recall dict plus ``reference_spread``; on a collapse, R@K = 0 (or ``collapsed``, the worst
-    value of every metric compute() would give) with a warning instead.
-
-    ``compute`` is not called on a collapse (an all-zero collapse could not be ranked at all).
-    """
-    if reference_spread < COLLAPSE_SPREAD:
-        warnings.warn(f"reference descriptors have collapsed (spread {reference_spread:.2e} < {COLLAPSE_SPREAD}): "
-                      "every image maps to about one point, so recall is meaningless here and is reported as 0")
-        metrics = dict(collapsed) if collapsed is not None else {**{f"R@{k}": 0.0 for k in ks}, "R@1%": 0.0}
-    else:
-        metrics = compute()
-    metrics["reference_spread"] = reference_spread
-    return metrics

@@ -1,8 +1,8 @@
 """A gallery of reference descriptors searchable by inner product: built once, saved, queried later.
 
 Two backends:
-- ``torch``: exact, chunked over queries and references so memory stays bounded; runs on the device the
-  descriptors live on (GPU when there is one).
+- ``torch``: exact, the scorer's top-k (`geoloc.eval.scoring.top_k`: chunked, one memory budget, the lower row
+  first among equal scores); runs on the device the descriptors live on (GPU when there is one).
 - ``faiss`` (the optional ``faiss-cpu`` extra), one ``kind`` each (benchmarks/README.md measures them at 1M):
   - ``flat``: exact (``IndexFlatIP``).
   - ``ivfpq``: inverted lists + 8-bit product quantisation (``IndexIVFPQ``); approximate scores, least memory.
@@ -17,7 +17,9 @@ Two backends:
 
 Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b. What is added,
 trained on or searched goes through `geoloc.eval.descriptors.unit_rows`, as in `recall_at_k`: rows off unit length
-are normalised (cosine), NaN/inf rows raise FloatingPointError, all-zero rows ValueError, on both backends.
+are normalised (cosine), NaN/inf rows raise FloatingPointError, all-zero rows ValueError, on both backends. Results
+of either backend are ordered best first, the lower row first among equal scores (`geoloc.eval.candidates.ordered`).
+A flat index gives back its stored vectors (`vectors`), so a saved gallery can be scored exactly.
 """
 from __future__ import annotations
 
@@ -27,9 +29,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geoloc.eval.descriptors import unit_rows
+from geoloc.eval.candidates import ordered
+from geoloc.eval.descriptors import as_float_tensor, unit_rows
+from geoloc.eval.scoring import SCORE_BUDGET, top_k
 
-__all__ = ["GalleryIndex", "import_faiss", "as_float_tensor"]
+__all__ = ["GalleryIndex", "import_faiss"]
 
 _FORMAT = "geoloc.gallery/1"
 _ADD_BLOCK = 65536
@@ -43,24 +47,6 @@ def import_faiss():
     except ImportError as e:
         raise ImportError("the faiss backend needs faiss: pip install 'geoloc[faiss]' (or faiss-cpu)") from e
     return faiss
-
-
-def as_float_tensor(x, name: str) -> torch.Tensor:
-    """numpy array or tensor -> 2-D floating tensor (float64 stays float64; anything else becomes float32)."""
-    if isinstance(x, np.ndarray):
-        x = torch.from_numpy(x)
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name} must be a torch tensor or a numpy array, got {type(x).__name__}")
-    if x.ndim != 2:
-        raise ValueError(f"{name} must be N x D, got shape {tuple(x.shape)}")
-    if not x.is_floating_point():
-        x = x.float()
-    return x.detach()
-
-
-def _chunk_rows(n_cols: int, budget: int = 1 << 25) -> int:
-    # Rows of an n_cols-wide score block that fit in ``budget`` elements (128 MiB of float32).
-    return max(1, budget // max(n_cols, 1))
 
 
 # One builder per kind: (faiss, dim, params) -> an empty FAISS index. FAISS's Python constructors keep a reference to
@@ -127,7 +113,7 @@ class GalleryIndex:
         k_factor: refine kinds: ``k_factor * k`` PQ candidates are re-ranked exactly.
         hnsw_m, ef_construction, ef_search: ``hnsw``: links per node, candidate list while building / searching.
         device: torch backend only: where the gallery lives (default: where the first added descriptors are).
-        chunk_size: queries per block of the torch search.
+        chunk_size: queries per block of the torch search (`geoloc.eval.scoring`).
     """
 
     def __init__(self, dim: int, backend: str = "torch", kind: str = "flat", nlist: int = 1024, m: int = 64,
@@ -203,9 +189,8 @@ class GalleryIndex:
         return self
 
     def search(self, query, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Top-k references per query (Q x dim): (Q x k scores, Q x k row numbers), best first, on the CPU.
-
-        k is capped at ``len(self)``.
+        """Top-k references per query (Q x dim): (Q x k scores, Q x k row numbers), best first (the lower row
+        first among equal scores), on the CPU. k is capped at ``len(self)``.
         """
         if len(self) == 0:
             raise ValueError("search on an empty gallery: add descriptors first")
@@ -213,36 +198,30 @@ class GalleryIndex:
             raise ValueError(f"k must be >= 1, got {k}")
         q = self._check(query, "query")
         k = min(int(k), len(self))
-        if self.backend == "faiss":
-            q = np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32)
-            if self.kind == "flat":  # one call: the exact path stays as recall_at_k(backend="faiss") has it
-                scores, idx = self._index.search(q, k)
-                return torch.from_numpy(scores), torch.from_numpy(idx)
-            # Queries per call: FAISS holds k (refine kinds: k_factor * k) candidates per query of a call.
-            step = _chunk_rows(k * (self.params["k_factor"] if self.kind.endswith("_refine") else 1))
-            blocks = [self._index.search(q[s:s + step], k) for s in range(0, q.shape[0], step)]
-            return (torch.from_numpy(np.concatenate([b[0] for b in blocks])),
-                    torch.from_numpy(np.concatenate([b[1] for b in blocks])))
-        return self._search_torch(q, k)
+        if self.backend == "torch":
+            scores, rows = top_k(q, self._descriptors, k, chunk_size=self.chunk_size)
+            return scores.float(), rows
+        q = np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32)
+        if self.kind == "flat":  # one call: the exact path of recall_at_k(backend="faiss")
+            scores, idx = self._index.search(q, k)
+            return ordered(torch.from_numpy(scores), torch.from_numpy(idx))
+        # Queries per call: FAISS holds k (refine kinds: k_factor * k) candidates per query of a call.
+        per_query = k * (self.params["k_factor"] if self.kind.endswith("_refine") else 1)
+        step = max(1, SCORE_BUDGET // per_query)
+        blocks = [self._index.search(q[s:s + step], k) for s in range(0, q.shape[0], step)]
+        return ordered(torch.from_numpy(np.concatenate([b[0] for b in blocks])),
+                       torch.from_numpy(np.concatenate([b[1] for b in blocks])))
 
-    def _search_torch(self, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        ref = self._descriptors
-        q = q.to(ref.device, ref.dtype)
-        step = _chunk_rows(self.chunk_size)  # reference rows per block
-        out_s, out_i = [], []
-        for q0 in range(0, q.shape[0], self.chunk_size):
-            qc = q[q0:q0 + self.chunk_size]
-            best_s = torch.empty(qc.shape[0], 0, dtype=ref.dtype, device=ref.device)
-            best_i = torch.empty(qc.shape[0], 0, dtype=torch.long, device=ref.device)
-            for r0 in range(0, ref.shape[0], step):
-                scores = qc @ ref[r0:r0 + step].t()
-                block_s, block_i = scores.topk(min(k, scores.shape[1]), dim=1)
-                cand_s, cand_i = torch.cat([best_s, block_s], dim=1), torch.cat([best_i, block_i + r0], dim=1)
-                best_s, pos = cand_s.topk(min(k, cand_s.shape[1]), dim=1)
-                best_i = cand_i.gather(1, pos)
-            out_s.append(best_s.float().cpu())
-            out_i.append(best_i.cpu())
-        return torch.cat(out_s), torch.cat(out_i)
+    def vectors(self) -> torch.Tensor:
+        """N x dim: the stored descriptors of a flat (exact) index, as they were added (unit rows), where the
+        index keeps them (the torch backend: its device; FAISS: the CPU)."""
+        if self.kind != "flat":
+            raise ValueError(f"a {self.kind} index keeps codes, not its vectors: only kind=flat gives them back")
+        if len(self) == 0:
+            raise ValueError("an empty gallery has no vectors: add descriptors first")
+        if self.backend == "torch":
+            return self._descriptors
+        return torch.from_numpy(self._index.reconstruct_n(0, len(self)))
 
     def save(self, path: str | Path) -> None:
         """One file (``torch.save`` of a plain dict) for either backend; reload with ``GalleryIndex.load``."""

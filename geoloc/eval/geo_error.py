@@ -1,49 +1,25 @@
-"""Metre error of the top-1 reference: how far each query's GPS is from the centre of the tile it retrieved.
+"""Metre error of the top-1 reference: how far each query's position is from the centre of the tile it retrieved.
 
 VIGOR (Zhu et al., CVPR 2021) gives every panorama and satellite tile a (lat, lon) in its file name; the distance
 from a query to its top-1 tile's centre says how far off a retrieval-only localisation is. Distances are
-`geoloc.data.geo.haversine_m` (sphere of the mean Earth radius). The summary reports the median and the share of
-queries within 10 / 25 / 50 m, thresholds inclusive (an error of exactly 10 m is within 10 m).
+`geoloc.data.geo.distance_m`: haversine for (lat, lon) degrees (sphere of the mean Earth radius), Euclidean for
+(x, y) metres. The top-1 is the scorer's (`geoloc.eval.scoring`): the lowest reference index among equal scores.
+The summary reports the median and the share of queries within 10 / 25 / 50 m, thresholds inclusive (an error of
+exactly 10 m is within 10 m).
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from geoloc.data.geo import haversine_m
-from geoloc.eval.gallery import _chunk_rows
-from geoloc.eval.recall import _check_chunk, _check_pair, _index_tensor
+from geoloc.data.geo import distance_m
+from geoloc.data.relevance import index_tensor
+from geoloc.eval.keys import KeySet
 
-__all__ = ["THRESHOLDS_M", "latlon_array", "metre_errors", "metre_summary", "top1_indices"]
+__all__ = ["METRE_KEYS", "THRESHOLDS_M", "latlon_array", "metre_errors", "metre_summary"]
 
 THRESHOLDS_M = (10, 25, 50)
-
-
-def top1_indices(query, reference, chunk_size: int | None = None) -> torch.Tensor:
-    """(Q,) int64 on the CPU: the index of the reference with the largest inner product with each query.
-
-    query: Q x D, reference: N x D (tensors or numpy arrays), L2-normalised as in `recall_at_k` (rows off unit
-    length are normalised; NaN/inf or all-zero rows raise). Ties go to the lowest reference index (a fixed rule
-    that does not depend on the chunking). At most ``chunk_size`` queries (default 1024) times a block of
-    references are scored at once; runs where ``reference`` lives (GPU if there).
-    """
-    chunk = _check_chunk(chunk_size)
-    q, r = _check_pair(query, reference, one_to_one=False)
-    step = _chunk_rows(chunk)
-    out = torch.empty(q.shape[0], dtype=torch.long)
-    for q0 in range(0, q.shape[0], chunk):
-        qc = q[q0:q0 + chunk]
-        best = torch.full((qc.shape[0],), float("-inf"), dtype=r.dtype, device=r.device)
-        best_idx = torch.zeros(qc.shape[0], dtype=torch.long, device=r.device)
-        for r0 in range(0, r.shape[0], step):
-            # max() returns the first index of a row's maximum; a later block takes over only when strictly
-            # better, so the lowest index wins a tie across blocks too.
-            score, idx = (qc @ r[r0:r0 + step].t()).max(dim=1)
-            better = score > best
-            best = torch.where(better, score, best)
-            best_idx = torch.where(better, idx + r0, best_idx)
-        out[q0:q0 + qc.shape[0]] = best_idx.cpu()
-    return out
+METRE_KEYS = KeySet({"median_m": float("inf"), **{f"within_{t}m": 0.0 for t in THRESHOLDS_M}})
 
 
 def latlon_array(x, name: str, rows: int | None) -> np.ndarray:
@@ -60,18 +36,25 @@ def latlon_array(x, name: str, rows: int | None) -> np.ndarray:
     return a
 
 
-def metre_errors(top1, query_latlon, reference_latlon) -> np.ndarray:
-    """(Q,) float64 metres from query i's (lat, lon) to the centre of its top-1 reference ``top1[i]``.
+def metre_errors(top1, query_positions, reference_positions, kind: str = "latlon") -> np.ndarray:
+    """(Q,) float64 metres from query i's position to the centre of its top-1 reference ``top1[i]``.
 
-    top1: (Q,) integer indices into the N references (e.g. `top1_indices`); query_latlon (Q, 2) and
-    reference_latlon (N, 2) in degrees.
+    top1: (Q,) integer indices into the N references (the scorer's top-1: `geoloc.eval.scoring.top_k`);
+    positions (Q, 2) and (N, 2) of one kind: "latlon" degrees (haversine) or "xy" metres (Euclidean).
     """
-    ref = latlon_array(reference_latlon, "reference_latlon", None)
+    if kind == "latlon":
+        ref = latlon_array(reference_positions, "reference_latlon", None)
+    else:
+        ref = np.asarray(reference_positions, np.float64)
     top1 = torch.as_tensor(top1)
     if top1.ndim != 1:
         raise ValueError(f"top1 must be (Q,) reference indices, got shape {tuple(top1.shape)}")
-    idx = _index_tensor(top1, "top1", tuple(top1.shape), ref.shape[0], allow_none=False).numpy()
-    return haversine_m(latlon_array(query_latlon, "query_latlon", len(idx)), ref[idx])
+    idx = index_tensor(top1, "top1", tuple(top1.shape), ref.shape[0], allow_none=False).numpy()
+    query = (latlon_array(query_positions, "query_latlon", len(idx)) if kind == "latlon"
+             else np.asarray(query_positions, np.float64))
+    if query.shape != (len(idx), 2) or ref.ndim != 2 or ref.shape[1] != 2:
+        raise ValueError(f"positions must be ({len(idx)}, 2) and (N, 2) of {kind}, got {query.shape} and {ref.shape}")
+    return distance_m(query, ref[idx], kind)
 
 
 def metre_summary(errors) -> dict[str, float]:
@@ -86,6 +69,6 @@ def metre_summary(errors) -> dict[str, float]:
     if not np.isfinite(e).all() or (e < 0).any():
         i = int(np.flatnonzero(~np.isfinite(e) | (e < 0))[0])
         raise ValueError(f"errors must be finite and >= 0 metres; entry {i} is {e[i]}")
-    out = {"median_m": float(np.median(e))}
-    out.update({f"within_{t}m": float((e <= t).mean()) for t in THRESHOLDS_M})
-    return out
+    out = {"median_m": np.median(e)}
+    out.update({f"within_{t}m": (e <= t).mean() for t in THRESHOLDS_M})
+    return METRE_KEYS.values(out)

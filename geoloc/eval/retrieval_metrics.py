@@ -1,42 +1,80 @@
-"""Every retrieval metric a split supports, from one call: recall, VIGOR's hit rate and metres, University-1652's AP.
+"""Every retrieval metric a split supports, from one pass of the scorer: recall, VIGOR's hit rate and metres,
+University-1652's AP.
 
-Which keys appear (all Python floats, JSON-ready):
+The plan (`metric_plan`) is the list of key sets a run reports, read from the relevance and the positions:
 
-- always: ``R@K`` for K in ks and ``R@1%``. Without labels they are `recall_at_k`'s (the rank of the positive,
-  VIGOR / SAFA convention);
-- with ``semi_positives``: ``hit_rate``, the share of queries whose top-1 is the positive or a semi-positive (VIGOR);
-- with ``query_labels`` and ``reference_labels``: ``AP``, and the R@ keys follow the label rule, "a reference of
-  the query's label in the top K" (University-1652, `mean_average_precision`);
-- with ``query_latlon`` and ``reference_latlon``: ``median_m``, ``within_10m``, ``within_25m``, ``within_50m``, the
-  metres from each query to its top-1 reference's centre (`geo_error`).
+- always: ``R@K`` for K in ks and ``R@1%``: the rank of the best relevant reference (`geoloc.eval.scoring`): the
+  positive (SAFA / VIGOR convention), any image of the query's building with labels (University-1652), any
+  reference within the radius (VPR);
+- with semi-positives: ``hit_rate``, VIGOR's code rule (no reference outside the positive and its semi-positives
+  strictly closer than the positive);
+- with labels, scored exactly: ``AP`` (University-1652, `average_precision.py`); a candidate list (an approximate
+  gallery) does not rank the whole gallery, so it has no AP;
+- with positions: ``median_m``, ``within_10m``, ``within_25m``, ``within_50m``: the metres from each query to its
+  top-1 reference's centre (`geo_error`). Splits report them beyond one-to-one data only, where retrieving another
+  reference than the query's own is a position error, not a wrong pair.
 
-With labels, the positives rule can give a lower R@1 than the benchmark's (the positive is one image of the
-building; any image of it counts there), so one result never mixes the two: with labels every R@ key is the
-label rule, the positives are only checked to carry their query's label, and semi-positives are refused (no
-dataset has both; a hit rate beside label recall would be a third rule).
+The "collapsed" result of a run is `geoloc.eval.keys.collapsed` of its plan. One relevance is used throughout, so
+one result never mixes rules: with labels every R@ key is label recall, and semi-positives beside labels are
+refused.
 """
 from __future__ import annotations
 
 from typing import Iterable
 
+import torch
+
+from geoloc.data.relevance import Relevance, index_tensor, label_tensor
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.eval.average_precision import check_ks, label_tensor, mean_average_precision
-from geoloc.eval.gallery import as_float_tensor
-from geoloc.eval.geo_error import latlon_array, metre_errors, metre_summary, top1_indices
-from geoloc.eval.recall import _check_pair, _index_tensor, recall_at_k
+from geoloc.eval.average_precision import AP_KEYS, average_precision
+from geoloc.eval.candidates import rank_candidates
+from geoloc.eval.descriptors import as_float_tensor, checked_pair
+from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.geo_error import METRE_KEYS, latlon_array, metre_errors, metre_summary
+from geoloc.eval.keys import KeySet, collapsed
+from geoloc.eval.recall import HIT_RATE_KEYS, check_ks, hit_rate, one_percent_k, recall_keys, recall_summary
+from geoloc.eval.scoring import Ranking, rank
 
-__all__ = ["retrieval_metrics", "split_metrics"]
+__all__ = ["index_metrics", "metric_plan", "retrieval_metrics", "scored_metrics", "split_metrics", "split_plan",
+           "scored_positions"]
+
+Positions = tuple  # (kind "latlon" | "xy", query (Q, 2), reference (N, 2))
 
 
-def _check_labelled_positives(positives, query_labels, reference_labels) -> None:
-    pos = _index_tensor(positives, "positives", tuple(query_labels.shape), reference_labels.shape[0],
-                        allow_none=False)
-    wrong = reference_labels[pos] != query_labels
-    if wrong.any():
-        i = int(wrong.nonzero()[0])
-        raise ValueError(f"positives of query {i} is reference {int(pos[i])} with label "
-                         f"{int(reference_labels[pos[i]])}, but the query's label is {int(query_labels[i])} "
-                         f"({int(wrong.sum())} such queries): positives and labels disagree")
+def metric_plan(relevance: Relevance, ks: Iterable[int], located: bool, exact: bool = True) -> list[KeySet]:
+    """The key sets reported for this relevance: recall, then hit rate, AP, metres where they apply."""
+    plan = [recall_keys(check_ks(ks))]
+    if relevance.semi_positives is not None:
+        plan.append(HIT_RATE_KEYS)
+    if relevance.kind == "labels" and exact:
+        plan.append(AP_KEYS)
+    if located:
+        plan.append(METRE_KEYS)
+    return plan
+
+
+def _summaries(found: Ranking, plan: list[KeySet], ks, num_references: int, positions: Positions | None) -> dict:
+    out = recall_summary(found.ranks, ks, num_references)
+    if HIT_RATE_KEYS in plan:
+        out.update(hit_rate(found.hits))
+    if AP_KEYS in plan:
+        out.update(average_precision(found.relevant_ranks))
+    if METRE_KEYS in plan:
+        kind, query_positions, reference_positions = positions
+        out.update(metre_summary(metre_errors(found.top_rows[:, 0], query_positions, reference_positions, kind)))
+    if list(out) != list(collapsed(plan)):
+        raise RuntimeError(f"computed {list(out)} but the plan declares {list(collapsed(plan))}")
+    return out
+
+
+def scored_metrics(query, reference, relevance: Relevance, ks: Iterable[int] = (1, 5, 10),
+                   positions: Positions | None = None) -> dict[str, float]:
+    """The plan's metrics of Q x D query and N x D reference descriptors, from one pass of the scorer."""
+    ks = check_ks(ks)
+    plan = metric_plan(relevance, ks, positions is not None)
+    found = rank(query, reference, relevance, hits=HIT_RATE_KEYS in plan, every_relevant=AP_KEYS in plan,
+                 top=1 if positions is not None else 0)
+    return _summaries(found, plan, ks, relevance.num_references, positions)
 
 
 def _pair(a, b, name_a: str, name_b: str) -> bool:
@@ -44,6 +82,17 @@ def _pair(a, b, name_a: str, name_b: str) -> bool:
         given, missing = (name_a, name_b) if b is None else (name_b, name_a)
         raise ValueError(f"{given} was given without {missing}: give both or neither")
     return a is not None
+
+
+def _check_labelled_positives(positives, query_labels, reference_labels) -> None:
+    pos = index_tensor(positives, "positives", tuple(query_labels.shape), reference_labels.shape[0],
+                       allow_none=False)
+    wrong = reference_labels[pos] != query_labels
+    if wrong.any():
+        i = int(wrong.nonzero()[0])
+        raise ValueError(f"positives of query {i} is reference {int(pos[i])} with label "
+                         f"{int(reference_labels[pos[i]])}, but the query's label is {int(query_labels[i])} "
+                         f"({int(wrong.sum())} such queries): positives and labels disagree")
 
 
 def retrieval_metrics(query, reference, positives=None, semi_positives=None, query_latlon=None,
@@ -58,47 +107,75 @@ def retrieval_metrics(query, reference, positives=None, semi_positives=None, que
     ks = check_ks(ks)
     labelled = _pair(query_labels, reference_labels, "query_labels", "reference_labels")
     located = _pair(query_latlon, reference_latlon, "query_latlon", "reference_latlon")
-    q, r = _check_pair(query, reference, one_to_one=positives is None and not labelled)
+    q, r = checked_pair(query, reference, one_to_one=positives is None and not labelled)
+    n_query, n_ref = q.shape[0], r.shape[0]
     if labelled:
         if semi_positives is not None:
             raise ValueError("semi_positives and labels were both given: with labels the R@ keys count any "
                              "reference of the query's label, so a semi-positive hit rate would mix two rules; "
                              "pass one or the other")
-        q_labels = label_tensor(query_labels, "query_labels", q.shape[0])
-        r_labels = label_tensor(reference_labels, "reference_labels", r.shape[0])
+        q_labels = label_tensor(query_labels, "query_labels", n_query)
+        r_labels = label_tensor(reference_labels, "reference_labels", n_ref)
         if positives is not None:
             _check_labelled_positives(positives, q_labels, r_labels)
-        scores = mean_average_precision(q, r, q_labels, r_labels, ks)
-        out = {key: value for key, value in scores.items() if key != "AP"}
-        out["AP"] = scores["AP"]
+        relevance = Relevance.from_labels(q_labels, r_labels)
+    elif positives is None and semi_positives is None:
+        relevance = Relevance.one_to_one(n_query, n_ref)
     else:
-        out = recall_at_k(q, r, ks, positives=positives, semi_positives=semi_positives)
+        positives = torch.arange(n_query) if positives is None else positives
+        relevance = Relevance.from_positives(positives, n_ref, semi_positives, num_queries=n_query)
+    positions = None
     if located:
-        query_latlon = latlon_array(query_latlon, "query_latlon", q.shape[0])
-        reference_latlon = latlon_array(reference_latlon, "reference_latlon", r.shape[0])
-        out.update(metre_summary(metre_errors(top1_indices(q, r), query_latlon, reference_latlon)))
-    return out
+        positions = ("latlon", latlon_array(query_latlon, "query_latlon", n_query),
+                     latlon_array(reference_latlon, "reference_latlon", n_ref))
+    return scored_metrics(q, r, relevance, ks, positions)
+
+
+def scored_positions(split: RetrievalSplit) -> Positions | None:
+    """(kind, query, reference positions) that the metre keys score, or None: one-to-one splits and splits
+    without positions have none."""
+    kind, query_positions, reference_positions = split.positions()
+    if kind is None or split.one_to_one:
+        return None
+    return kind, query_positions, reference_positions
+
+
+def split_plan(split: RetrievalSplit, ks: Iterable[int] = (1, 5, 10), exact: bool = True) -> list[KeySet]:
+    """The key sets a split is scored with (`metric_plan`): its collapsed result is `keys.collapsed` of it."""
+    return metric_plan(split.relevance, ks, scored_positions(split) is not None, exact)
+
+
+def _check_rows(split: RetrievalSplit, **descriptors) -> None:
+    for name, x in descriptors.items():
+        rows = {"query": split.num_queries, "reference": split.num_references}[name]
+        got = as_float_tensor(x, name, ndims=(2, 3)).shape[0]
+        if got != rows:
+            raise ValueError(f"{name} has {got} rows but split {split.name!r} has {rows} {name} images: describe "
+                             "every image of the split, in its order")
 
 
 def split_metrics(query, reference, split: RetrievalSplit, ks: Iterable[int] = (1, 5, 10)) -> dict[str, float]:
-    """`retrieval_metrics` with the positives, semi-positives, GPS and labels of ``split``; query / reference rows
-    must be in the split's query / reference order."""
-    for name, x, rows in (("query", query, split.num_queries), ("reference", reference, split.num_references)):
-        if as_float_tensor(x, name).shape[0] != rows:
-            raise ValueError(f"{name} has {x.shape[0]} rows but split {split.name!r} has {rows} {name} images: "
-                             "describe every image of the split, in its order")
-    return retrieval_metrics(query, reference, split.positives, split.semi_positives, split.query_latlon,
-                             split.reference_latlon, split.query_labels, split.reference_labels, ks)
+    """`scored_metrics` with the relevance and positions of ``split``; query / reference rows must be in the
+    split's query / reference order."""
+    _check_rows(split, query=query, reference=reference)
+    return scored_metrics(query, reference, split.relevance, ks, scored_positions(split))
 
 
-def collapsed_split_metrics(split: RetrievalSplit, ks: Iterable[int] = (1, 5, 10)) -> dict[str, float]:
-    """What `split_metrics` reports when the gallery has collapsed onto one point (geoloc.eval.descriptors): every
-    query would "find" its place through ties, so each score is its worst value rather than a perfect one."""
-    out = {**{f"R@{k}": 0.0 for k in ks}, "R@1%": 0.0}
-    if split.semi_positives is not None:
-        out["hit_rate"] = 0.0
-    if split.query_labels is not None:
-        out["AP"] = 0.0
-    if split.query_latlon is not None and split.reference_latlon is not None:
-        out.update({"median_m": float("inf"), "within_10m": 0.0, "within_25m": 0.0, "within_50m": 0.0})
-    return out
+def index_metrics(index: GalleryIndex, query, split: RetrievalSplit, ks: Iterable[int] = (1, 5, 10)) -> dict:
+    """What a gallery index scores of a split whose reference j is gallery row j.
+
+    A flat (exact) index is scored from its stored vectors by `split_metrics`: the same numbers as the exact
+    path, AP included. Approximate kinds are scored from their top-k lists (`geoloc.eval.candidates`), k = the
+    largest K asked (or of R@1%), without AP."""
+    ks = check_ks(ks)
+    if len(index) != split.num_references:
+        raise ValueError(f"the gallery index holds {len(index)} references but split {split.name!r} has "
+                         f"{split.num_references}")
+    if index.kind == "flat":
+        return split_metrics(query, index.vectors(), split, ks)
+    _check_rows(split, query=query)
+    relevance, positions = split.relevance, scored_positions(split)
+    plan = metric_plan(relevance, ks, positions is not None, exact=False)
+    scores, rows = index.search(query, max(*ks, one_percent_k(len(index))))
+    found = rank_candidates(scores, rows, relevance, hits=HIT_RATE_KEYS in plan)
+    return _summaries(found, plan, ks, len(index), positions)

@@ -6,7 +6,8 @@ M(q, r) = alpha * cos(BoW_q, BoW_r) + (1 - alpha) * cos(SPM_q, SPM_r), alpha = 0
 exactly M: [sqrt(alpha) bow/|bow|, sqrt(1-alpha) spm/|spm|, pad_query, pad_reference]. A zero code (no ORB
 keypoints) leaves its block at zero; the pad column of the image's role takes the missing norm, and the two pad
 columns never meet (queries pad one, references the other), so M is unchanged and every row has norm 1. That lets
-the project's recall_at_k (distance 2 - 2 a.b on unit vectors) rank by M with any backend.
+the project's scorer (geoloc.eval.scoring: distance 2 - 2 a.b on unit vectors) rank by M, as recall and the
+gallery search do.
 """
 
 from __future__ import annotations
@@ -15,6 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from geoloc.eval.scoring import top_k
 
 
 def l2_normalize(x: np.ndarray) -> np.ndarray:
@@ -63,7 +67,8 @@ class Gallery:
             return cls(f["bow"], f["spm"], f["places"], int(f["levels"]))
 
     def search(self, q_bow: np.ndarray, q_spm: np.ndarray, alpha: float = 0.5, k: int = 10) -> np.ndarray:
-        """Place ids of the top-k references of each query by eq. 5."""
-        sim = fused_similarity(q_bow, q_spm, self.bow, self.spm, alpha)
-        top = np.argsort(-sim, axis=1, kind="stable")[:, :k]
-        return self.places[top]
+        """Place ids of the top-k references of each query by eq. 5 (the scorer's top-k of the fused
+        descriptors: the lower gallery row first among equal scores)."""
+        query = torch.from_numpy(fused_descriptors(q_bow, q_spm, alpha, "query"))
+        reference = torch.from_numpy(fused_descriptors(self.bow, self.spm, alpha, "reference"))
+        return self.places[top_k(query, reference, k)[1].numpy()]

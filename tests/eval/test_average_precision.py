@@ -3,9 +3,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 from geoloc.eval.average_precision import mean_average_precision
-from geoloc.eval.recall import one_percent_k, recall_at_k, retrieval_ranks
+from geoloc.eval.recall import one_percent_k, recall_at_k
 
 from helpers.descriptor_data import labelled_data as data
+from helpers.ranking import ranks_of
 
 
 def brute_force(query, reference, query_labels, reference_labels, ks):
@@ -100,7 +101,7 @@ def test_one_reference_per_label_is_recall_with_positives():
     query = F.normalize(torch.randn(120, 8, generator=g, dtype=torch.float64) + reference[positives], dim=1)
     got = mean_average_precision(query, reference, positives, torch.arange(40), ks=(1, 5))
     assert {k: v for k, v in got.items() if k != "AP"} == recall_at_k(query, reference, (1, 5), positives=positives)
-    ranks = retrieval_ranks(query, reference, positives=positives).double()
+    ranks = ranks_of(query, reference, positives=positives).double()
     assert len(set(ranks.tolist())) > 5
     per_query = torch.where(ranks > 0, 1 / (ranks + 1) / 2, torch.ones_like(ranks))
     assert got["AP"] == pytest.approx(float(per_query.mean()), abs=1e-12)

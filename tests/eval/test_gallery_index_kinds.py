@@ -150,7 +150,7 @@ def test_query_blocks_give_the_one_call_result(easy, monkeypatch):
     query, reference = easy
     index = GalleryIndex(DIM, backend="faiss", kind="pq_refine", **SMALL).add(reference)
     whole = index.search(query, 10)
-    monkeypatch.setattr(gallery_mod, "_chunk_rows", lambda n_cols: 7)  # 300 queries in 43 calls
+    monkeypatch.setattr(gallery_mod, "SCORE_BUDGET", 7 * 10 * SMALL["k_factor"])  # 300 queries in 43 calls
     blocked = index.search(query, 10)
     torch.testing.assert_close(blocked[1], whole[1])
     torch.testing.assert_close(blocked[0], whole[0])

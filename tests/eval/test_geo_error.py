@@ -1,11 +1,16 @@
-"""Top-1 references and their metre error (VIGOR's GPS in the file names): brute force, hand metres, edges."""
-import geoloc.eval.geo_error as geo_error
+"""Top-1 references (the scorer's top-k) and their metre error (VIGOR's GPS in the file names): brute force, hand
+metres, edges."""
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 from geoloc.data.geo import haversine_m, offset_to_latlon
-from geoloc.eval.geo_error import metre_errors, metre_summary, top1_indices
+from geoloc.eval import scoring
+from geoloc.eval.geo_error import metre_errors, metre_summary
+
+
+def top1_indices(query, reference, chunk_size=None):
+    return scoring.top_k(query, reference, 1, chunk_size=chunk_size)[1][:, 0]
 
 CHICAGO = (41.8781, -87.6298)
 
@@ -27,7 +32,7 @@ def test_top1_matches_brute_force(monkeypatch, dtype, chunk_size):
     reference = F.normalize(torch.randn(53, 8, generator=g, dtype=torch.float64), dim=1)
     want = brute_top1(query, reference)
     assert len(set(want)) > 10  # the answers spread over the gallery
-    monkeypatch.setattr(geo_error, "_chunk_rows", lambda n: 6)  # 9 blocks of references
+    monkeypatch.setattr(scoring, "SCORE_BUDGET", 6 * (chunk_size or scoring.QUERY_CHUNK))  # 9 blocks of references
     got = top1_indices(query.to(dtype), reference.to(dtype), chunk_size=chunk_size)
     assert got.dtype == torch.int64 and got.tolist() == want
 
@@ -42,7 +47,7 @@ def test_top1_normalises_rows_like_recall():
 def test_a_tie_goes_to_the_lowest_index_in_any_block(monkeypatch, rows_per_block):
     reference = torch.tensor([[0.0, 1.0], [0.6, 0.8], [1.0, 0.0], [0.0, -1.0], [1.0, 0.0]], dtype=torch.float64)
     query = torch.tensor([[1.0, 0.0], [0.0, -1.0]], dtype=torch.float64)
-    monkeypatch.setattr(geo_error, "_chunk_rows", lambda n: rows_per_block)  # 2: the tied rows in two blocks
+    monkeypatch.setattr(scoring, "SCORE_BUDGET", rows_per_block * scoring.QUERY_CHUNK)  # 2: the tied rows apart
     assert top1_indices(query, reference).tolist() == [2, 3]
 
 

@@ -3,7 +3,10 @@ import numpy as np
 import pytest
 import torch
 from geoloc.eval import GalleryIndex, recall_at_k
-from geoloc.eval.recall import one_percent_k, retrieval_ranks
+from geoloc.eval import scoring
+from geoloc.eval.recall import one_percent_k
+
+from helpers.ranking import ranks_of
 
 try:
     import faiss  # noqa: F401
@@ -50,7 +53,7 @@ def test_matches_brute_force(q, n):
     assert got == pytest.approx(brute_recall(ranks, n, ks), abs=0)
     assert all(isinstance(v, float) for v in got.values())
     assert set(got) == {"R@1", "R@2", "R@5", "R@10", "R@50", "R@1%"}
-    got_ranks = retrieval_ranks(query, ref)
+    got_ranks = ranks_of(query, ref)
     assert got_ranks.dtype == torch.long
     np.testing.assert_array_equal(got_ranks.numpy(), ranks)
 
@@ -70,10 +73,10 @@ TIE_QUERY = np.array([[1, 0, 0, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], n
 def test_ties_count_in_the_querys_favour():
     # Exactly representable vectors, so ties are exact. Queries 0 and 1 tie with each other's match (score 1
     # both): rank 0. Query 2: match 1, reference 3 scores .5: rank 0. Query 3: match .5, the rest 0: rank 0.
-    np.testing.assert_array_equal(retrieval_ranks(TIE_QUERY, TIE_REF).numpy(), [0, 0, 0, 0])
+    np.testing.assert_array_equal(ranks_of(TIE_QUERY, TIE_REF).numpy(), [0, 0, 0, 0])
     query = TIE_QUERY.copy()
     query[2] = [1, 0, 0, 0]  # its match now scores 0; references 0, 1 (score 1) and 3 (.5) are closer: rank 3
-    np.testing.assert_array_equal(retrieval_ranks(query, TIE_REF).numpy(), [0, 0, 3, 0])
+    np.testing.assert_array_equal(ranks_of(query, TIE_REF).numpy(), [0, 0, 3, 0])
     assert recall_at_k(query, TIE_REF, ks=(1, 3, 4)) == {"R@1": 0.75, "R@3": 0.75, "R@4": 1.0, "R@1%": 0.75}
 
 
@@ -101,19 +104,17 @@ def test_one_percent_at_cvusa_size():
 @pytest.mark.parametrize("chunk_size", [1, 7, 64, 10_000])
 def test_chunking_invariance(chunk_size):
     query, ref = descriptors(150, 200, 12, noise=0.4, seed=1)
-    expected = retrieval_ranks(query, ref, chunk_size=1024)
-    torch.testing.assert_close(retrieval_ranks(query, ref, chunk_size=chunk_size), expected)
+    expected = ranks_of(query, ref, chunk_size=1024)
+    torch.testing.assert_close(ranks_of(query, ref, chunk_size=chunk_size), expected)
     assert recall_at_k(query, ref, chunk_size=chunk_size) == recall_at_k(query, ref)
 
 
 def test_reference_blocks_are_bounded(monkeypatch):
     # Force tiny reference blocks: the result must not depend on how the gallery is split.
-    import geoloc.eval.recall as recall_mod
-
     query, ref = descriptors(60, 90, 8, noise=0.4, seed=2)
-    expected = retrieval_ranks(query, ref)
-    monkeypatch.setattr(recall_mod, "_chunk_rows", lambda n_cols: 7)
-    torch.testing.assert_close(retrieval_ranks(query, ref, chunk_size=5), expected)
+    expected = ranks_of(query, ref)
+    monkeypatch.setattr(scoring, "SCORE_BUDGET", 35)  # 5 queries x 7 references
+    torch.testing.assert_close(ranks_of(query, ref, chunk_size=5), expected)
 
 
 @needs_faiss
@@ -122,17 +123,6 @@ def test_faiss_flat_equals_torch(q, n):
     query, ref = descriptors(q, n, 16, noise=0.4, seed=4)
     ks = (1, 5, 10, 20)
     assert recall_at_k(query, ref, ks=ks, backend="faiss") == recall_at_k(query, ref, ks=ks)
-
-
-@needs_faiss
-def test_faiss_query_blocks_keep_their_row_numbers(monkeypatch):
-    # Force blocks of 7 queries: each block must look for its own true matches, not those of the first block.
-    import geoloc.eval.recall as recall_mod
-
-    query, ref = descriptors(60, 90, 24, noise=0.4, seed=11)
-    expected = recall_at_k(query, ref, ks=(1, 5, 10))
-    monkeypatch.setattr(recall_mod, "_chunk_rows", lambda n_cols: 7)
-    assert recall_at_k(query, ref, ks=(1, 5, 10), backend="faiss") == expected
 
 
 @needs_faiss
@@ -164,10 +154,8 @@ def test_gallery_flat_search_matches_brute_force(backend):
 
 
 def test_gallery_torch_blocks_merge(monkeypatch):
-    import geoloc.eval.gallery as gallery_mod
-
     query, ref = descriptors(20, 100, 8, noise=0.5, seed=6)
-    monkeypatch.setattr(gallery_mod, "_chunk_rows", lambda n_cols: 9)
+    monkeypatch.setattr(scoring, "SCORE_BUDGET", 27)  # 3 queries x 9 references
     _, idx = GalleryIndex(8, chunk_size=3).add(ref).search(query, 12)
     np.testing.assert_array_equal(idx.numpy(), brute_topk(query, ref, 12)[1])
 

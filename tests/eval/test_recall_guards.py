@@ -12,10 +12,12 @@ import torch
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval import GalleryIndex, recall_at_k
 from geoloc.eval.descriptors import UNIT_TOLERANCE, unit_rows
-from geoloc.eval.recall import retrieval_ranks
 from geoloc.tasks.crossview import gallery as crossview_gallery
 from geoloc.tasks.crossview.datasets import EvalData
-from geoloc.tasks.crossview.gallery import GalleryConfig, recall_from_index
+from geoloc.eval.retrieval_metrics import index_metrics
+from geoloc.tasks.crossview.gallery import GalleryConfig
+
+from helpers.ranking import ranks_of
 
 BACKENDS = ["torch", pytest.param("faiss", marks=pytest.mark.skipif(
     not __import__("importlib").util.find_spec("faiss"), reason="faiss-cpu not installed"))]
@@ -26,6 +28,12 @@ def unit_pairs(n=60, d=16, noise=0.5, seed=0):
     reference = torch.nn.functional.normalize(torch.randn(n, d, generator=g), dim=1)
     query = torch.nn.functional.normalize(reference + noise * torch.randn(n, d, generator=g), dim=1)
     return query, reference
+
+
+def pairs_split(n, root="/data"):
+    """A one-to-one RetrievalSplit of n pairs (query i matches reference i)."""
+    return RetrievalSplit("pairs", root, [f"q{i}.jpg" for i in range(n)], [f"r{i}.jpg" for i in range(n)],
+                          np.arange(n))
 
 
 def row_scales(n, seed=1):
@@ -46,11 +54,11 @@ def test_non_finite_rows_raise_naming_the_side_and_the_count(backend, side, bad)
         recall_at_k(broken["query"], broken["reference"], backend=backend)
 
 
-def test_non_finite_rows_raise_in_retrieval_ranks_too():
+def test_non_finite_rows_raise_in_the_scorer_too():
     query, reference = unit_pairs()
     query[0, 0] = float("nan")
     with pytest.raises(FloatingPointError, match="1 of 60 query"):
-        retrieval_ranks(query, reference)
+        ranks_of(query, reference)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -85,7 +93,9 @@ def test_gallery_ranks_raw_descriptors_by_cosine(backend):
     query, reference = unit_pairs()
     scaled = GalleryIndex(16, backend=backend).add(reference * row_scales(60))
     exact = GalleryIndex(16, backend=backend).add(reference)
-    assert recall_from_index(scaled, query * 7) == recall_from_index(exact, query) == recall_at_k(query, reference)
+    split = pairs_split(60)
+    exact_metrics = index_metrics(exact, query, split)
+    assert index_metrics(scaled, query * 7, split) == exact_metrics == recall_at_k(query, reference)
     _, rows_scaled = scaled.search(query * 7, 5)
     _, rows_exact = exact.search(query, 5)
     assert torch.equal(rows_scaled, rows_exact)
@@ -118,9 +128,7 @@ def gallery_eval(monkeypatch, tmp_path, query, reference, **cfg):
                         {k: {"query": query, "reference": reference}[k] for k in sides})
     task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
     engine = SimpleNamespace(device=torch.device("cpu"))
-    n = len(query)
-    split = RetrievalSplit("pairs", tmp_path, [f"q{i}.jpg" for i in range(n)], [f"r{i}.jpg" for i in range(n)],
-                           np.arange(n))
+    split = pairs_split(len(query), tmp_path)
     return crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), {})
 
 

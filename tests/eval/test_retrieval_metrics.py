@@ -8,7 +8,8 @@ import torch.nn.functional as F
 from geoloc.data.geo import offset_to_latlon
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.average_precision import mean_average_precision
-from geoloc.eval.geo_error import metre_errors, metre_summary, top1_indices
+from geoloc.eval.geo_error import metre_errors, metre_summary
+from geoloc.eval.scoring import top_k
 from geoloc.eval.recall import recall_at_k
 from geoloc.eval.retrieval_metrics import retrieval_metrics, split_metrics
 
@@ -62,7 +63,7 @@ def test_gps_adds_the_metre_summary_of_the_top1():
     query, reference = one_to_one()
     query_latlon, reference_latlon = located(query, reference)
     got = retrieval_metrics(query, reference, query_latlon=query_latlon, reference_latlon=reference_latlon)
-    errors = metre_errors(top1_indices(query, reference), query_latlon, reference_latlon)
+    errors = metre_errors(top_k(query, reference, 1)[1][:, 0], query_latlon, reference_latlon)
     assert {k: got[k] for k in METRE_KEYS} == metre_summary(errors)
     assert set(got) == {"R@1", "R@5", "R@10", "R@1%"} | METRE_KEYS
     assert 0 < got["within_10m"] < got["within_50m"] < 1  # some top-1 right (under 20 m), some wrong

@@ -22,7 +22,9 @@ from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.data.geo import distance_m
 from geoloc.tasks.crossview.heading import query_candidates, query_inputs
 from geoloc.tasks.crossview.views import check_fov
+from geoloc.data.relevance import Relevance
 from geoloc.engine import checkpoint
+from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview.places import read_places
 
@@ -99,7 +101,7 @@ class Localizer:
         descriptors = self.encoder(inputs.to(self.device)).float()
         # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
         scores, rows = self.index.search(descriptors, min(len(self.index), int(topk)))
-        best = self._merge(scores.numpy(), rows.numpy(), headings)[: int(topk)]
+        best = self._merge(scores, rows, headings)[: int(topk)]
         answer = {"image": name or (str(path) if path else None), "fov_deg": fov,
                   "heading_deg": best[0]["heading_deg"], "heading_source": "search" if heading is None else "given",
                   "position": self._position(best[0]["row"]),
@@ -109,20 +111,25 @@ class Localizer:
             answer["truth"] = truth
         return answer
 
-    def _merge(self, scores: np.ndarray, rows: np.ndarray, headings: np.ndarray) -> list[dict]:
-        """Each gallery row's best score over the K candidates, and that candidate's heading; best first."""
-        best: dict[int, tuple[float, float]] = {}
-        for k in range(scores.shape[0]):
-            for score, row in zip(scores[k], rows[k]):
-                if row >= 0 and (row not in best or score > best[row][0]):
-                    best[int(row)] = (float(score), float(headings[k]))
-        ranked = sorted(best.items(), key=lambda item: (-item[1][0], item[0]))
-        return [{"rank": i + 1, **self.places.reference(row), "score": score, "heading_deg": heading}
-                for i, (row, (score, heading)) in enumerate(ranked)]
+    def _merge(self, scores: torch.Tensor, rows: torch.Tensor, headings: np.ndarray) -> list[dict]:
+        """Each gallery row's best score over the K candidates (K×k lists), and that candidate's heading; best
+        first, the lower row first among equal scores (geoloc.eval.candidates.merge_headings)."""
+        merged_scores, merged_rows, candidate = (x[0].tolist() for x in merge_headings(scores[None], rows[None]))
+        return [{"rank": i + 1, **self.places.reference(row), "score": score, "heading_deg": float(headings[k])}
+                for i, (score, row, k) in enumerate(zip(merged_scores, merged_rows, candidate)) if row >= 0]
 
     def _position(self, row: int) -> dict | None:
         ref = self.places.reference(row)
         return {k: v for k, v in ref.items() if k not in ("row", "path")} or None
+
+    def _rank_of(self, positive: int, best: list[dict]) -> int | None:
+        """1-based rank of the true row among the answer's top-k by the scorer's rule (a tie counts in the
+        query's favour), None when it is not among them."""
+        if all(b["row"] != positive for b in best):
+            return None
+        found = rank_candidates(torch.tensor([[b["score"] for b in best]]), torch.tensor([[b["row"] for b in best]]),
+                                Relevance.from_positives([positive], len(self.index)))
+        return int(found.ranks[0]) + 1
 
     def _truth(self, path: Path | None, best: list[dict]) -> dict | None:
         """The split's record of this query: its true gallery row, position, the top-1 metre error and the rank of
@@ -131,7 +138,7 @@ class Localizer:
         if line is None:
             return None
         truth = {"row": line["positive"], "reference": self.places.references[line["positive"]],
-                 "rank": next((b["rank"] for b in best if b["row"] == line["positive"]), None)}
+                 "rank": self._rank_of(line["positive"], best)}
         where = self.places.position_of(line)
         if where is not None:
             truth["position"] = {k: line[k] for k in ("lat", "lon", "x_m", "y_m") if k in line}

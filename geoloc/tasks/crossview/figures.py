@@ -1,9 +1,10 @@
 """Pictures of a cross-view run, as PNGs in the run dir and in TensorBoard.
 
 - attention.png   MSAE attention over query and reference inputs (the paper's Fig. 6)
-- top5.png        each query with its five nearest references, framed by relevance (Fig. 9): green the positive
-                  (any reference of the query's place, with labels), orange a semi-positive, red the others
-- recall_curve.png  recall@K for K = 1..50 (Fig. 4 style)
+- top5.png        each query with its five nearest references (the scorer's top-k: the lower index first among
+                  equal scores), framed by relevance (Fig. 9): green a relevant reference (the positive; with
+                  labels, any reference of the query's place), orange a semi-positive, red the others
+- recall_curve.png  recall@K for K = 1..50 (Fig. 4 style), ranked against the split's relevance, as validation
 - TensorBoard projector: the validation descriptors of both views (the t-SNE view of Fig. 8)
 """
 
@@ -19,7 +20,9 @@ import torch  # noqa: E402
 
 from geoloc.engine.logging import RunLogger  # noqa: E402
 from geoloc.eval.plots import grid, overlay, save_png  # noqa: E402
-from geoloc.eval.recall import recall_at_k  # noqa: E402
+from geoloc.data.relevance import Relevance  # noqa: E402
+from geoloc.eval.recall import recall_summary  # noqa: E402
+from geoloc.eval.scoring import rank, top_k  # noqa: E402
 from geoloc.tasks.crossview.transforms import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
 
 def to_uint8(x: torch.Tensor) -> np.ndarray:
@@ -38,17 +41,25 @@ GREEN, ORANGE, RED = (0, 200, 0), (240, 150, 0), (220, 0, 0)
 
 
 def relevance_colour(split, i: int, j: int) -> tuple[int, int, int]:
-    """The frame of reference j among query i's retrievals: green for the positive (or, with labels, any reference
-    of the query's place), orange for a semi-positive (VIGOR), red otherwise."""
+    """The frame of reference j among query i's retrievals: green for a relevant reference (the split's relevance:
+    the positive, or with labels any reference of the query's place), orange for a semi-positive (VIGOR), red
+    otherwise."""
     if split is None:
         return GREEN if i == j else RED
-    if split.query_labels is not None:
-        return GREEN if split.reference_labels[j] == split.query_labels[i] else RED
-    if j == split.positives[i]:
+    relevance = split.relevance
+    if j in relevance.relevant[i]:
         return GREEN
-    if split.semi_positives is not None and j in split.semi_positives[i]:
+    if relevance.semi_positives is not None and j in relevance.semi_positives[i]:
         return ORANGE
     return RED
+
+
+def recall_curve(query: torch.Tensor, reference: torch.Tensor, split, kmax: int = 50) -> dict[str, float]:
+    """{"R@K": recall} for K = 1..min(kmax, N) (and R@1%), ranked against the split's relevance (one-to-one when
+    ``split`` is None): the numbers validation reports, at every K."""
+    relevance = Relevance.one_to_one(len(query), len(reference)) if split is None else split.relevance
+    ks = range(1, min(kmax, len(reference)) + 1)
+    return recall_summary(rank(query, reference, relevance).ranks, ks, len(reference))
 
 
 def _sides(data):
@@ -100,9 +111,9 @@ def crossview_figures(task, data, run_dir: str | Path, device: torch.device, bat
 
     # top-5 retrievals, framed by relevance
     rows = []
-    sim = query[picks] @ reference.T
+    _, tops = top_k(query[picks], reference, 5)
     for row, i in enumerate(picks):
-        top = torch.topk(sim[row], k=min(5, n_reference)).indices.tolist()
+        top = tops[row].tolist()
         tiles = [to_uint8(query_image(i))]
         for j in top:
             tiles.append(_frame(to_uint8(reference_image(j)), relevance_colour(split, i, j)))
@@ -113,8 +124,7 @@ def crossview_figures(task, data, run_dir: str | Path, device: torch.device, bat
 
     # recall curve
     kmax = min(50, n_reference)
-    positives = None if split is None else torch.as_tensor(split.positives)
-    recall = recall_at_k(query, reference, ks=tuple(range(1, kmax + 1)), positives=positives)
+    recall = recall_curve(query, reference, split, kmax)
     fig, ax = plt.subplots(figsize=(4.5, 3.2), dpi=120)
     ax.plot(range(1, kmax + 1), [100 * recall[f"R@{k}"] for k in range(1, kmax + 1)], marker=".")
     ax.set_xlabel("K")

@@ -5,8 +5,10 @@
 
 DIR holds `gallery.pt` (GalleryIndex.save), `gallery.json` (what it was built from, and the reference spread) and
 the places (`references.jsonl`, `queries.jsonl`: geoloc/tasks/crossview/places.py), which localize.py reads.
-Gallery row j is the split's reference j, so the queries must come from the split the gallery was built on.
-With `kind=flat` the recall equals the exact evaluation (AP, for labelled splits, is left to it). The default
+Gallery row j is the split's reference j, so the queries must come from the split the gallery was built on; they
+are scored against the split's relevance (`geoloc.eval.retrieval_metrics.index_metrics`). With `kind=flat` the
+stored vectors go through the scorer itself, so every number equals the exact evaluation, AP included; approximate
+kinds are scored from their top-k lists, without AP. The default
 `kind=auto` builds `flat` below `auto_exact_below` (100,000) references and `pq_refine` (FAISS; 99.9% of the exact
 R@1 at 2 ms per query on 1M references, benchmarks/README.md) from there on; gallery.json records the kind built.
 Both ways run the checks of the validation path (geoloc.eval.descriptors): NaN/inf descriptors raise before anything
@@ -25,16 +27,13 @@ import torch
 
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview.datasets import EvalData
-from geoloc.data.geo import distance_m
-from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine import distributed as dist
-from geoloc.eval.descriptors import check_descriptors, guarded_recall
+from geoloc.eval.descriptors import check_descriptors
 from geoloc.eval.gallery import KINDS, PQ_KINDS, GalleryIndex, import_faiss
-from geoloc.eval.geo_error import metre_summary
-from geoloc.eval.recall import one_percent_k
-from geoloc.eval.retrieval_metrics import collapsed_split_metrics
+from geoloc.eval.keys import guarded
+from geoloc.eval.retrieval_metrics import index_metrics, split_plan
 from geoloc.tasks.crossview.encode import encode, encode_images
-from geoloc.tasks.crossview.places import split_positions, write_places
+from geoloc.tasks.crossview.places import write_places
 
 
 AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (benchmarks/README.md, 1M references)
@@ -98,46 +97,6 @@ def build_index(reference: torch.Tensor, cfg: GalleryConfig) -> GalleryIndex:
     return index.add(reference)
 
 
-def recall_from_index(index: GalleryIndex, query: torch.Tensor, ks=(1, 5, 10), positives=None) -> dict[str, float]:
-    """R@K and R@1% of queries whose true match is gallery row positives[i] (default i), from one top-k search.
-
-    rank = the number of returned items scored strictly above the true match (as the index scored it); a true
-    match not in the top k_max counts as rank >= k_max. For a flat index this is `recall_at_k`'s convention
-    (semi-positives count as any other reference, DESIGN.md "Retrieval with positives").
-    """
-    return _index_ranks(index, query, ks, positives)[0]
-
-
-def _index_ranks(index: GalleryIndex, query: torch.Tensor, ks, positives) -> tuple[dict, torch.Tensor]:
-    """(recall dict, the Q x k_max returned rows)."""
-    k_pct = one_percent_k(len(index))
-    kmax = min(max(*ks, k_pct), len(index))
-    scores, rows = index.search(query, kmax)
-    truth = torch.arange(query.shape[0]) if positives is None else torch.as_tensor(positives, dtype=torch.long)
-    own = rows == truth[:, None]
-    found = own.any(dim=1)
-    own_score = torch.where(found, (scores * own).sum(dim=1), torch.full_like(scores[:, 0], float("inf")))
-    ranks = torch.where(found, (scores > own_score[:, None]).sum(dim=1), torch.full_like(rows[:, 0], kmax))
-    out = {f"R@{k}": float((ranks < k).double().mean()) for k in ks}
-    out["R@1%"] = float((ranks < k_pct).double().mean())
-    return out, rows
-
-
-def index_metrics(index: GalleryIndex, query: torch.Tensor, split: RetrievalSplit) -> dict[str, float]:
-    """What a saved gallery can score of a split: R@K and R@1% against each query's positive, VIGOR's hit rate
-    (top-1 is the positive or a semi-positive) and the top-1 metre error where the split has positions. AP
-    (University-1652) needs the whole ranking and is left to the exact evaluation without gallery.*."""
-    out, rows = _index_ranks(index, query, (1, 5, 10), None if split.one_to_one else split.positives)
-    top1 = rows[:, 0].numpy()
-    if split.semi_positives is not None:
-        hits = (top1 == split.positives) | (split.semi_positives == top1[:, None]).any(axis=1)
-        out["hit_rate"] = float(hits.mean())
-    kind, query_pos, reference_pos = split_positions(split)
-    if kind is not None and not split.one_to_one:
-        out.update(metre_summary(distance_m(query_pos, reference_pos[top1], kind)))
-    return out
-
-
 def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", "reference")) -> dict:
     """{side: descriptors} of the split's queries and / or references, each image through its view's branch."""
     if data.pairs is not None:
@@ -169,8 +128,8 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
         index = GalleryIndex.load(folder / "gallery.pt", device=engine.device)
         query = encode_split(task, engine, data, batch_size, sides=("query",))["query"]
         check_descriptors(query)
-        return {**guarded_recall(lambda: index_metrics(index, query, split), spread,
-                                 collapsed=collapsed_split_metrics(split)), "num_references": len(index)}
+        plan = split_plan(split, exact=index.kind == "flat")
+        return {**guarded(lambda: index_metrics(index, query, split), spread, plan), "num_references": len(index)}
     desc = encode_split(task, engine, data, batch_size)
     query, reference = desc["query"], desc["reference"]
     spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
@@ -190,7 +149,8 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
             (folder / "gallery.json").write_text(json.dumps(info, indent=2) + "\n")
         return index_metrics(index, query, split)
 
-    metrics = guarded_recall(build_and_score, spread, collapsed=collapsed_split_metrics(split))
+    exact = cfg.resolved(split.num_references)[1] == "flat"
+    metrics = guarded(build_and_score, spread, split_plan(split, exact=exact))
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
     return {**metrics, "num_references": len(reference)}

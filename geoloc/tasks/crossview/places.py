@@ -21,16 +21,6 @@ from geoloc.data.retrieval_split import RetrievalSplit
 POSITION_KEYS = {"latlon": ("lat", "lon"), "xy": ("x_m", "y_m")}
 
 
-def split_positions(split: RetrievalSplit) -> tuple[str | None, np.ndarray | None, np.ndarray | None]:
-    """(kind, query positions, reference positions) of a split: "latlon" (VIGOR's file names, a positions.csv in
-    degrees), "xy" (metres) or (None, None, None) when the dataset has none."""
-    if split.reference_latlon is not None:
-        return "latlon", split.query_latlon, split.reference_latlon
-    if split.reference_xy is not None:
-        return "xy", split.query_xy, split.reference_xy
-    return None, None, None
-
-
 def _rel(path: Path, root: Path) -> str:
     try:
         return Path(path).relative_to(root).as_posix()
@@ -44,7 +34,7 @@ def _position(kind: str | None, row) -> dict:
 
 def write_places(folder: Path, split: RetrievalSplit) -> dict:
     """Write references.jsonl and queries.jsonl; returns the keys gallery.json records about them."""
-    kind, query_pos, reference_pos = split_positions(split)
+    kind, query_pos, reference_pos = split.positions()
     refs = [json.dumps({"path": _rel(p, split.root), **_position(kind, None if reference_pos is None else
                                                                   reference_pos[i])})
             for i, p in enumerate(split.references)]

@@ -15,10 +15,11 @@ from omegaconf import DictConfig
 from geoloc import registry
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
-from geoloc.eval import recall_at_k
-from geoloc.eval.descriptors import check_descriptors, guarded_recall
-from geoloc.tasks.crossview.heading import collapsed_heading_metrics, heading_metrics
-from geoloc.eval.retrieval_metrics import collapsed_split_metrics, split_metrics
+from geoloc.data.relevance import Relevance
+from geoloc.eval.descriptors import check_descriptors
+from geoloc.eval.keys import guarded
+from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
+from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
 
@@ -120,13 +121,15 @@ class CrossViewTask(Task):
         else:
             query, reference = outputs["query"], outputs["reference"]
         # Non-finite descriptors raise; a collapse (ties count in the query's favour, so one shared descriptor would
-        # score R@1 = 100%) reports recall 0. The same checks guard the saved-gallery path (gallery.py).
+        # score R@1 = 100%) reports every metric at its worst. The same checks guard the saved-gallery path.
         if query.ndim == 3:  # Q×K×D: each query at K candidate headings (geoloc/tasks/crossview/heading.py)
             spread = check_descriptors(query.flatten(0, 1), reference)
-            return guarded_recall(lambda: heading_metrics(query, reference, outputs["heading"]), spread,
-                                  collapsed=collapsed_heading_metrics())
+            relevance = None if self.split is None else self.split.relevance
+            return guarded(lambda: heading_metrics(query, reference, outputs["heading"], relevance=relevance), spread,
+                           heading_plan())
         spread = check_descriptors(query, reference)
-        if self.split is None or self.split.one_to_one:
-            return guarded_recall(lambda: recall_at_k(query, reference), spread)
-        return guarded_recall(lambda: split_metrics(query, reference, self.split), spread,
-                              collapsed=collapsed_split_metrics(self.split))
+        if self.split is None:  # descriptors without their split: query i matches reference i
+            relevance = Relevance.one_to_one(query.shape[0], reference.shape[0])
+            return guarded(lambda: scored_metrics(query, reference, relevance), spread,
+                           metric_plan(relevance, (1, 5, 10), located=False))
+        return guarded(lambda: split_metrics(query, reference, self.split), spread, split_plan(self.split))

@@ -5,8 +5,8 @@ image (ORB BoW). Reference (a static landmark image): its static image (BoW) and
 from the static image, or the ground-truth labels with vpr.gallery_seg=label where the reader has labels).
 Which images are queries and references, and where the vocabulary comes from: protocol.py, per reader.
 Vocabulary and reference codes are saved artefacts in `artefact_dir` and reused. References are reordered so
-reference[i] is query i's place, the order recall_at_k expects. The recovered query images are also scored
-against their own static view (L1, L2, PSNR, SSIM: Table II's scores), which every reader has.
+reference[i] is query i's place (the one-to-one relevance the scorer ranks by). The recovered query images are
+also scored against their own static view (L1, L2, PSNR, SSIM: Table II's scores), which every reader has.
 """
 
 from __future__ import annotations
@@ -20,7 +20,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from geoloc.eval.image import image_scores_per_image
-from geoloc.eval.recall import recall_at_k, retrieval_ranks
+from geoloc.data.relevance import Relevance
+from geoloc.eval.recall import recall_summary
+from geoloc.eval.scoring import rank
 from geoloc.tasks.mmdip.config import VPRConfig
 from geoloc.tasks.mmdip.networks import generator_input
 from geoloc.tasks.mmdip.protocol import FROM_TRAIN, PlaceProtocol, describe
@@ -112,17 +114,19 @@ def match_order(query_places: np.ndarray, ref_places: np.ndarray) -> np.ndarray:
     if missing:
         raise ValueError(f"queries of places {missing[:5]} have no reference in the gallery")
     if len(set(query_places.tolist())) != len(query_places):
-        raise ValueError("several queries of one place: recall_at_k needs one query per reference")
+        raise ValueError("several queries of one place: the one-to-one ranking needs one query per reference")
     head = [where[int(p)] for p in query_places]
     rest = sorted(set(range(len(ref_places))) - set(head))
     return np.array(head + rest, dtype=np.int64)
 
 
 def recall(q_bow, q_spm, r_bow, r_spm, alpha: float, ks) -> tuple[dict, torch.Tensor]:
-    """Recall of eq. 5's fused similarity; references already in query order. Returns (metrics, ranks)."""
+    """Recall of eq. 5's fused similarity, ranked by the scorer (geoloc.eval.scoring); references already in
+    query order (query i's place is reference i). Returns (metrics, ranks)."""
     q = torch.from_numpy(fused_descriptors(q_bow, q_spm, alpha, "query"))
     r = torch.from_numpy(fused_descriptors(r_bow, r_spm, alpha, "reference"))
-    return recall_at_k(q, r, ks=ks), retrieval_ranks(q, r)
+    ranks = rank(q, r, Relevance.one_to_one(len(q), len(r))).ranks
+    return recall_summary(ranks, tuple(ks), len(r)), ranks
 
 
 def retrieval_metrics(q_bow, q_spm, r_bow, r_spm, cfg: VPRConfig) -> tuple[dict, dict]:

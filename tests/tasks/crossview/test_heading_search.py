@@ -15,10 +15,11 @@ from geoloc.data.polar import aerial_to_polar
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.launch import run
 from geoloc.registry import register
-from geoloc.tasks.crossview import heading as heading_eval
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
+from geoloc.data.relevance import Relevance
+from geoloc.eval import scoring
 from geoloc.tasks.crossview.datasets import ViewImages
-from geoloc.tasks.crossview.heading import heading_metrics, heading_search
+from geoloc.tasks.crossview.heading import heading_metrics
 from geoloc.tasks.crossview.task import CrossViewTask
 from geoloc.tasks.crossview.transforms import (
     IMAGENET_MEAN,
@@ -49,17 +50,19 @@ def loop_search(query, reference, positives):
     return ranks, best
 
 
-@pytest.mark.parametrize("chunk", [2 ** 25, 40])  # 40 scores: one query per chunk
-def test_search_matches_a_loop_over_pairs_and_headings(monkeypatch, chunk):
-    monkeypatch.setattr(heading_eval, "SCORES_PER_CHUNK", chunk)
+@pytest.mark.parametrize("chunk,budget", [(None, 2 ** 25), (1, 6), (3, 36)])  # (1, 6): one reference per block
+def test_search_matches_a_loop_over_pairs_and_headings(monkeypatch, chunk, budget):
+    monkeypatch.setattr(scoring, "SCORE_BUDGET", budget)
     g = torch.Generator().manual_seed(0)
     query, reference = unit(torch.randn(7, 6, 4, generator=g)), unit(torch.randn(9, 4, generator=g))
     positives = torch.randint(0, 9, (7,), generator=g)
-    ranks, best = heading_search(query, reference, positives)
+    relevance = Relevance.from_positives(positives, 9)
+    found = scoring.rank(query, reference, relevance, chunk_size=chunk)
+    ranks, best = found.ranks, found.best_candidate
     expected_ranks, expected_best = loop_search(query, reference, positives)
     assert ranks.tolist() == expected_ranks and best.tolist() == expected_best
     truth = torch.rand(7, generator=g) * 360
-    metrics = heading_metrics(query, reference, truth, positives=positives)
+    metrics = heading_metrics(query, reference, truth, relevance=relevance)
     error = circular_error_deg(np.array(expected_best) * 60.0, truth.double().numpy())
     assert metrics["R@1"] == pytest.approx(np.mean(np.array(expected_ranks) < 1))
     assert metrics["R@5"] == pytest.approx(np.mean(np.array(expected_ranks) < 5))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
@@ -29,7 +29,7 @@ from geoloc.config import ConfigError
 from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.engine import distributed as dist
 from geoloc.eval.descriptors import check_descriptors
-from geoloc.eval.gallery import KINDS, PQ_KINDS, GalleryIndex, import_faiss
+from geoloc.eval.gallery import KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
 from geoloc.tasks.crossview.encode import encode, encode_images
@@ -40,22 +40,17 @@ AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (ben
 
 
 @dataclass
-class GalleryConfig:
+class GalleryConfig(IndexParams):
+    """evaluate.py's gallery.* keys: what to build or load, and the index knobs (IndexParams, their one home)."""
+
     save: str | None = None  # DIR: build the gallery from the split's references and save it there
     load: str | None = None  # DIR: answer the queries from this saved gallery
     backend: str = "torch"  # torch (exact, chunked) | faiss
     kind: str = "auto"  # auto | flat (exact) | ivfpq | pq_refine | ivfpq_refine | hnsw (the last four: faiss)
     auto_exact_below: int = 100_000  # kind=auto: flat below this many references, AUTO_APPROXIMATE (faiss) above
-    nlist: int = 1024  # IVF kinds: inverted lists (capped at N / 39, FAISS's minimum training points per list)
-    m: int = 64  # PQ kinds: sub-quantisers; must divide the descriptor dim
-    nbits: int = 8  # ivfpq: bits per sub-code (the refine kinds use 4)
-    nprobe: int = 16  # IVF kinds: lists visited per query
-    k_factor: int = 16  # refine kinds: k_factor * k PQ candidates re-ranked exactly
-    hnsw_m: int = 32  # hnsw: links per node
-    ef_construction: int = 40  # hnsw: candidate list while building
-    ef_search: int = 256  # hnsw: candidate list while searching
 
     def __post_init__(self):
+        super().__post_init__()
         if self.save and self.load:
             raise ValueError("give gallery.save=DIR (build) or gallery.load=DIR (query), not both")
         if self.backend not in ("torch", "faiss"):
@@ -64,11 +59,8 @@ class GalleryConfig:
             raise ValueError(f"gallery.kind must be one of {('auto', *KINDS)}, got {self.kind!r}")
         if self.kind not in ("auto", "flat") and self.backend != "faiss":
             raise ValueError(f"gallery.kind={self.kind} needs gallery.backend=faiss (torch has only kind=flat)")
-        knobs = ("auto_exact_below", "nlist", "m", "nbits", "nprobe", "k_factor", "hnsw_m", "ef_construction",
-                 "ef_search")
-        bad = [f"gallery.{key}={getattr(self, key)}" for key in knobs if getattr(self, key) < 1]
-        if bad:
-            raise ValueError(f"{', '.join(bad)}: must be >= 1")
+        if self.auto_exact_below < 1:
+            raise ValueError(f"gallery.auto_exact_below={self.auto_exact_below}: must be >= 1")
 
     def resolved(self, num_references: int) -> tuple[str, str]:
         """(backend, kind) to build for a gallery of ``num_references``: kind=auto picks flat or AUTO_APPROXIMATE."""
@@ -90,10 +82,9 @@ def build_index(reference: torch.Tensor, cfg: GalleryConfig) -> GalleryIndex:
     if kind in PQ_KINDS and reference.shape[1] % cfg.m:
         raise ConfigError(f"gallery.kind={cfg.kind} builds {kind}, whose gallery.m={cfg.m} sub-quantisers must divide "
                           f"the descriptor dim {reference.shape[1]}: set gallery.m to a divisor of it")
-    nlist = max(1, min(cfg.nlist, reference.shape[0] // 39))
-    index = GalleryIndex(reference.shape[1], backend=backend, kind=kind, nlist=nlist, m=cfg.m, nbits=cfg.nbits,
-                         nprobe=cfg.nprobe, k_factor=cfg.k_factor, hnsw_m=cfg.hnsw_m,
-                         ef_construction=cfg.ef_construction, ef_search=cfg.ef_search)
+    knobs = {f.name: getattr(cfg, f.name) for f in fields(IndexParams)}
+    knobs["nlist"] = max(1, min(cfg.nlist, reference.shape[0] // 39))
+    index = GalleryIndex(reference.shape[1], backend=backend, kind=kind, params=IndexParams(**knobs))
     return index.add(reference)
 
 

@@ -10,7 +10,7 @@ trainer monitored (logged in metrics.jsonl as run/monitor and run/monitor_mode; 
 first), the earliest of equal ones, as the trainer picks best.pt; `--at both` (default) prints both tables. The
 epoch column is the mean ± std of those epochs, counted from 0 as in metrics.jsonl, checkpoints and the trainer's `[epoch N]` lines.
 Runs are grouped by their job's Hydra overrides (`.hydra/overrides.yaml` of the job folder, which MMDIP's phase1/
-and phase2/ logs sit below; else the dir name) minus `seed=`, and by phase; overrides that every run shares
+and phase2/ logs sit below; else the folder's name) minus `seed=`, and by phase; overrides that every run shares
 (dataset.root, ...) are left out of the row names. A job that failed (a .hydra/ folder without metrics.jsonl), a
 run that stopped before its last epoch (trainer.max_epochs in .hydra/config.yaml) or whose log ends in a cut
 line is left out of the means and listed under the tables; a damaged line elsewhere stops the tool, naming the
@@ -111,11 +111,11 @@ def job_of(run_dir: Path, multirun_dir: Path) -> Path:
 
 
 def run_overrides(job: Path) -> list[str]:
+    """The job's command-line overrides as Hydra saved them; without .hydra/, the folder's name stands for them."""
     saved = job / ".hydra" / "overrides.yaml"
     if saved.is_file():
         return [str(x) for x in yaml.safe_load(saved.read_text()) or []]
-    name = job.name.split("_", 1)[-1] if job.name.split("_", 1)[0].isdigit() else job.name
-    return [x for x in name.split(",") if x]
+    return [job.name]
 
 
 def planned_epochs(job: Path, run_dir: Path) -> int | None:

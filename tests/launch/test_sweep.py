@@ -238,3 +238,16 @@ def test_an_mmdip_sweep_is_grouped_by_its_jobs_overrides_and_phase(tmp_path):
         for phase in ("phase1", "phase2"):
             assert f"| task.segmentation.lr={lr} phase={phase} | 2 |" in out
     assert "Not in the tables" not in out
+
+
+def test_a_sweep_jobs_folder_works_as_a_ckpt_value_on_the_command_line():
+    """Hydra's default job folder `0_ablation=no_msae,seed=1` fails as `ckpt=<folder>/last.pt` ("mismatched input
+    '='"); geoloc's names parse as they are."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=["ablation=no_msae", "seed=1", "dataset.fov=90"], return_hydra_config=True)
+    name = f"0_{cfg.hydra.job.override_dirname}"
+    assert name == "0_ablation-no_msae_dataset.fov-90_seed-1"
+    parsed = OverridesParser.create().parse_overrides([f"ckpt=multirun/2026-01-01_00-00-00_1/{name}/last.pt"])
+    assert parsed[0].value() == f"multirun/2026-01-01_00-00-00_1/{name}/last.pt"

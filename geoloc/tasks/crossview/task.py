@@ -23,6 +23,11 @@ from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_met
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
+# What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
+# the batch as the data module gives it and each branch's BranchFeatures (models/crossview.py). They are this
+# rank's, where the descriptors are gathered over ranks.
+LOSS_EXTRAS = ("batch", "query_features", "reference_features")
+
 
 class CrossViewTask(Task):
     monitor = "R@1"
@@ -38,6 +43,8 @@ class CrossViewTask(Task):
         self.loss = registry.build("loss", loss, dim=model.dim)
         if not callable(self.loss):
             raise TypeError(f"loss {loss.get('name')!r} did not build a callable (docs/extending.md)")
+        self.loss_extras = tuple(registry.accepted(getattr(self.loss, "forward", self.loss),
+                                                   dict.fromkeys(LOSS_EXTRAS)))
         # what is built later fails here, before any data is read: an unknown name or argument
         registry.check("optimizer", optim, runtime=("params", "max_epochs"))
         registry.check("sampler", self.sampler_section,
@@ -74,13 +81,20 @@ class CrossViewTask(Task):
             self.sampler.set_descriptors(desc["query"], desc["reference"])
 
     def training_step(self, batch, engine):
-        query, reference = self.model(batch["query"], batch["reference"])
+        extras = {}
+        if {"query_features", "reference_features"} & set(self.loss_extras):  # the maps only when asked for
+            extras["query_features"], extras["reference_features"] = self.model.features(batch["query"],
+                                                                                         batch["reference"])
+            query, reference = extras["query_features"].descriptor, extras["reference_features"].descriptor
+        else:
+            query, reference = self.model(batch["query"], batch["reference"])
         query, reference = query.float(), reference.float()
         # the loss sees the global batch; gradients flow back to every rank's slice
         query_all = dist.all_gather_with_grad(query)
         reference_all = dist.all_gather_with_grad(reference)
         labels_all = dist.all_gather_nograd(batch["label"])
-        out = self.loss(query_all, reference_all, labels_all)
+        extras["batch"] = batch
+        out = self.loss(query_all, reference_all, labels_all, **{k: extras[k] for k in self.loss_extras})
         return out if isinstance(out, dict) else {"loss": out}
 
     def on_train_batch_end(self, outputs):

@@ -26,7 +26,8 @@ from geoloc.data.geo import latlon_to_offset, offset_to_latlon
 from geoloc.data.tile_offsets import OFFSETS_FILE, offsets_text
 
 from . import layouts as LY
-from .city import CITY_NAMES, CITY_ORIGINS, City, build_city, city_rngs, panorama_position, render_panorama, render_tiles
+from .city import (CITY_NAMES, CITY_ORIGINS, City, build_city, city_rngs, panorama_position, render_panorama,
+                   render_tiles)
 from .config import SynthConfig, VigorOptions
 from .tiles import TileGrid
 

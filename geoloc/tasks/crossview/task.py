@@ -51,6 +51,12 @@ class CrossViewTask(Task):
                        runtime=("labels", "batch_size", "seed", "rank", "world_size", "neighbours"))
         self.sampler = None
         self.split = None  # the RetrievalSplit validation scores (validate_on): its relevance and views
+        self.query_views: dict[str, str] = {}  # {"train": ..., "val": ...}: RetrievalSplit.query_view of each
+
+    def checkpoint_info(self) -> dict:
+        """The query views of the splits trained and validated on ("panorama", "sphere", "image", "aerial"), so
+        apps know what the query branch takes (CrossViewEncoder) without guessing from the dataset's name."""
+        return {"query_view": dict(self.query_views)}
 
     # ---- optimisation --------------------------------------------------------------------------------------
     def configure_optimizers(self):
@@ -60,6 +66,7 @@ class CrossViewTask(Task):
         return [opt], [sched] if sched is not None else []
 
     def train_dataloader(self, dataset, batch_size, engine):
+        self.query_views["train"] = dataset.split.query_view
         if self.sampler_section.get("name") == "shuffle":  # the engine's own seeded shuffle
             return engine.loader(dataset, batch_size, train=True)
         self.sampler = registry.build("sampler", self.sampler_section, labels=dataset.labels, batch_size=batch_size,
@@ -106,6 +113,7 @@ class CrossViewTask(Task):
         """The RetrievalSplit that validation scores: which references are relevant to which query, and which
         branch encodes its queries. The runner sets it once the split is read."""
         self.split = split
+        self.query_views["val"] = split.query_view
 
     def val_dataloaders(self, data, batch_size, engine):
         """One-to-one splits: one loader of pairs. Others: the queries and the gallery apart."""

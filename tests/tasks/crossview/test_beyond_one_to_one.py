@@ -70,7 +70,7 @@ def test_vigor_trains_and_evaluates_in_both_settings(vigor_root, tmp_path):
 
     query = json.loads((folder / "queries.jsonl").read_text().splitlines()[0])
     answer = Localizer.load(ckpt, folder, device="cpu").localize(
-        read_street(vigor_root / query["path"]), topk=3, heading=0, path=vigor_root / query["path"])
+        read_street(vigor_root / query["path"]), topk=3, heading=0, path=vigor_root / query["path"]).to_json()
     top1 = answer["topk"][0]
     assert answer["truth"]["row"] == query["positive"] and answer["positions"] == "latlon"
     assert answer["truth"]["error_m"] == pytest.approx(

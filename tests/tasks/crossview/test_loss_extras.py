@@ -17,7 +17,8 @@ def _batch(n=4, seed=0):
 
 def test_a_loss_that_names_the_batch_and_the_maps_gets_them():
     torch.manual_seed(0)
-    task = conftest.tiny_task(loss={"name": "tile_position", "module": str(REPO / "tests/plugins/tile_position_loss.py")})
+    plugin = str(REPO / "tests/plugins/tile_position_loss.py")
+    task = conftest.tiny_task(loss={"name": "tile_position", "module": plugin})
     assert task.loss_extras == ("batch", "reference_features")
     data = _batch()
     loss = task.training_step(data, SimpleNamespace(epoch=0))["loss"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.tasks.crossview.run import restored_task
+from geoloc.tasks.crossview.run import restored_task, stored_config
 from omegaconf import OmegaConf
 
 
@@ -23,7 +23,9 @@ def test_a_checkpoint_without_the_key_keeps_the_relu(finished_run):
     x = torch.randn(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
     masks = {}
     for name, head in (("old", {}), ("relu", {"scale_activation": "relu"}), ("none", {"scale_activation": "none"})):
-        task, stored = restored_task(_with_head(state, **head), run_dir / "best.pt")
+        edited = _with_head(state, **head)
+        stored = stored_config(edited)
+        task = restored_task(edited, run_dir / "best.pt", stored)
         branch = task.model.eval().query
         masks[name] = branch(x, return_attention=True)[1]
         if name == "old":

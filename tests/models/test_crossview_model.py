@@ -89,22 +89,20 @@ def test_attention_mask_reweights_the_features():
 
 
 @pytest.mark.parametrize("head", [MSAEHead, PlainHead])
-def test_head_defaults_are_the_configs(head):
-    """The modules' sizes are the paper head's (conf/head/msae.yaml, fc.yaml); the branches' ReLU is the module's
-    default (geoloc's choice, which checkpoints without the key were trained with), and the paper's config drops
-    it (eq. 3)."""
-    import yaml
+def test_head_defaults_are_the_configs(head, tmp_path):
+    """The modules' sizes are the paper head's as composed (head=msae, head=fc); the branches' ReLU is the module's
+    default (geoloc's choice, which checkpoints without the key were trained with), which the CPU head keeps and
+    the paper's head drops (eq. 3)."""
+    from conftest import compose_train
 
-    from conftest import CONF
-
+    name = "msae" if head is MSAEHead else "fc"
     built = head([4, 4, 4], dim=8)
-    cfg = yaml.safe_load((CONF / "head" / ("msae.yaml" if head is MSAEHead else "fc.yaml")).read_text())
-    assert built.descriptor.proj.out_channels == cfg["proj_channels"] and built.descriptor.pool == cfg["pool"]
+    cfg = compose_train([f"head={name}", f"run_dir={tmp_path}"]).head
+    assert built.descriptor.proj.out_channels == cfg.proj_channels and built.descriptor.pool == cfg.pool
     if head is MSAEHead:
-        assert built.scales[0].out_channels == cfg["scale_channels"]
-        assert built.scale_activation == "relu" and cfg["scale_activation"] == "none"
-        cpu = yaml.safe_load((CONF / "head" / "msae_cpu.yaml").read_text())
-        assert "scale_activation" not in cpu  # the CPU default keeps the module's ReLU
+        assert built.scales[0].out_channels == cfg.scale_channels
+        assert built.scale_activation == "relu" and cfg.scale_activation == "none"
+        assert compose_train([f"run_dir={tmp_path}"]).head.scale_activation == "relu"  # the CPU default: msae_cpu
 
 
 def test_eq3_as_written_drops_the_branch_activation():

@@ -93,16 +93,20 @@ class CrossViewEncoder:
                               "query_view=panorama | sphere | image") from err
 
     # ---- preprocessing -----------------------------------------------------------------------------------------
-    def street_inputs(self, image: np.ndarray, fov: float = 360.0, heading: float | None = None, steps: int = 36,
-                      view: str | None = None) -> tuple[torch.Tensor, np.ndarray]:
+    def street_inputs(self, image: np.ndarray, fov: float = 360.0, heading: float | None = None,
+                      steps: int | None = None, view: str | None = None) -> tuple[torch.Tensor, np.ndarray]:
         """image: H×W×3 uint8 RGB, a street view covering `fov` degrees of bearing (360: a panorama; a full sphere,
         view "sphere", is cut to its horizon band as the data module cuts it). heading: its bearing when known
-        (degrees clockwise from north); None: the `steps` candidate headings 360·k/steps. view: the images' query
-        view (default the checkpoint's). -> (K×3×H×W query-branch inputs on the CPU, (K,) headings in degrees)."""
+        (degrees clockwise from north); None: the `steps` candidate headings 360·k/steps (default the checkpoint's
+        dataset.heading_steps). view: the images' query view (default the checkpoint's).
+        -> (K×3×H×W query-branch inputs on the CPU, (K,) headings in degrees)."""
         view = self.query_view if view is None else view
         fov = check_fov(fov, "fov")
         street = horizon_band(image) if view == "sphere" and fov == 360.0 else image
-        headings = candidate_headings(steps) if heading is None else np.array([float(heading) % 360.0])
+        if heading is None:
+            headings = candidate_headings(steps or self.data.heading_steps)
+        else:
+            headings = np.array([float(heading) % 360.0])
         return query_inputs(street, self.data, view, fov, headings), headings
 
     def aerial_input(self, tile: np.ndarray) -> torch.Tensor:

@@ -31,8 +31,9 @@ def main() -> None:
     import onnxruntime
     from hydra import compose, initialize_config_dir
 
-    from geoloc.tasks.crossview.data_config import parse_dataset
+    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends, as train.py stores them)
     from geoloc.apps.export.onnx_export import export_encoders
+    from geoloc.tasks.crossview import CrossViewEncoder
     from geoloc.tasks.crossview.config import parse_training
     from geoloc.tasks.crossview.run import build_task
 
@@ -41,8 +42,10 @@ def main() -> None:
         cfg = compose("train", overrides=[*args.overrides, "run_dir=."])
     torch.manual_seed(0)
     run = parse_training(cfg)
-    model = build_task(run.model, run.components, run.trainer.max_epochs).model.eval()
-    data_cfg = parse_dataset(cfg.dataset)[0]
+    task = build_task(run.model, run.components, run.trainer.max_epochs)
+    views = {"task_info": {"query_view": {"train": "panorama", "val": "panorama"}}}  # what a CVUSA run records
+    encoder = CrossViewEncoder(task, cfg, views, "untrained", torch.device("cpu"))
+    model, data_cfg = encoder.model, encoder.data
     print(f"model: backbone={cfg.backbone.name} head={cfg.head.name} dim={cfg.model.dim} "
           f"alignment={data_cfg.alignment} aerial_size={data_cfg.aerial_size}; {args.threads} thread(s), "
           f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}")
@@ -50,7 +53,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         started = time.perf_counter()
-        spec = export_encoders(model, data_cfg, "panorama", out)
+        spec = export_encoders(encoder, out)
         diff = max(spec[b]["checked_against_torch"]["max_abs_diff"] for b in ("query", "reference"))
         print(f"export (both branches, incl. the onnxruntime check): {time.perf_counter() - started:.1f} s, "
               f"opset {spec['opset']}, max abs difference from torch {diff:.2g}")

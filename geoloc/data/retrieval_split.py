@@ -17,6 +17,11 @@ import numpy as np
 from geoloc.data.relevance import Relevance
 
 QUERY_VIEWS = ("panorama", "sphere", "image", "aerial")
+# the fields that hold one row per query / per reference (what cutting a split to fewer rows cuts)
+PER_QUERY = ("queries", "positives", "semi_positives", "query_latlon", "query_xy", "query_labels", "query_tile_px",
+             "query_semi_tile_px")
+PER_REFERENCE = ("references", "reference_latlon", "reference_xy", "reference_labels", "reference_size_px",
+                 "reference_metres_per_px")
 
 
 @dataclass(frozen=True)
@@ -38,6 +43,14 @@ class RetrievalSplit:
     still encoded by its own view's branch).
     relevance_radius_m: None, or the VPR convention: a query's positive and every reference within this many
     metres of it are relevant (needs positions; `relevance`).
+
+    Tile geometry and where each query lies in its tiles (the seams of metric localisation; docs/datasets.md):
+    reference_size_px (N, 2) int (height, width) or None: the pixel frame of each tile as released (VIGOR 640 x 640);
+    reference_metres_per_px (N,) float > 0 or None: ground metres per tile pixel (VIGOR's per-city scale, the
+    synthetic renderer's); needs reference_size_px. The tile's extent is reference_extent_m;
+    query_tile_px (Q, 2) float (row, col) or None: the query's position in its positive tile, in continuous pixel
+    coordinates of that frame ((0, 0) the top-left corner, (H/2, W/2) the tile centre, rows south, columns east);
+    query_semi_tile_px (Q, S, 2) float or None: the same in each semi-positive, NaN where semi_positives is -1.
     """
 
     name: str
@@ -54,6 +67,10 @@ class RetrievalSplit:
     reference_labels: np.ndarray | None = None
     query_view: str = "panorama"  # panorama | sphere | image | aerial: see above
     relevance_radius_m: float | None = None  # VPR: every reference within this radius is relevant too
+    reference_size_px: np.ndarray | None = None
+    reference_metres_per_px: np.ndarray | None = None
+    query_tile_px: np.ndarray | None = None
+    query_semi_tile_px: np.ndarray | None = None
 
     def __post_init__(self):
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731  (frozen: set once, here)
@@ -95,6 +112,7 @@ class RetrievalSplit:
                 raise ValueError(f"{self._where()}: query {i} ({self.queries[i]}) has label {self.query_labels[i]} "
                                  f"but its positive reference {self.positives[i]} has label "
                                  f"{self.reference_labels[self.positives[i]]} ({len(wrong)} such queries)")
+        self._check_tiles(put)
 
     @cached_property
     def relevance(self) -> Relevance:
@@ -179,3 +197,77 @@ class RetrievalSplit:
             i = int(np.flatnonzero(~ok)[0])
             raise ValueError(f"{self._where()}: {key} row {i} = {a[i].tolist()} is not a (lat, lon) in degrees")
         return a
+
+    @property
+    def reference_extent_m(self) -> np.ndarray | None:
+        """(N, 2) ground metres (height, width) each tile covers, or None where the scale is unknown."""
+        if self.reference_metres_per_px is None:
+            return None
+        return self.reference_size_px * self.reference_metres_per_px[:, None]
+
+    def query_tile_offset_m(self) -> np.ndarray | None:
+        """(Q, 2) (east, north) metres of each query from its positive tile's centre, or None where the split lacks
+        the query positions or the tiles' scale."""
+        if self.query_tile_px is None or self.reference_metres_per_px is None:
+            return None
+        size = self.reference_size_px[self.positives]
+        scale = self.reference_metres_per_px[self.positives]
+        row, col = self.query_tile_px[:, 0], self.query_tile_px[:, 1]
+        return np.column_stack([(col - size[:, 1] / 2) * scale, (size[:, 0] / 2 - row) * scale])
+
+    def _check_tiles(self, put) -> None:
+        """The tile geometry and the query positions in the tiles (class docstring), checked and normalised."""
+        q, n = self.num_queries, self.num_references
+        needs_size = [k for k in ("reference_metres_per_px", "query_tile_px", "query_semi_tile_px")
+                      if getattr(self, k) is not None]
+        if self.reference_size_px is None:
+            if needs_size:
+                raise ValueError(f"{self._where()}: {needs_size[0]} needs reference_size_px, the pixel frame of "
+                                 "the tiles it refers to")
+            return
+        size = self._ints("reference_size_px", self.reference_size_px, (n, 2), None, None)
+        if size.size and size.min() < 1:
+            i = int(np.flatnonzero((size < 1).any(1))[0])
+            raise ValueError(f"{self._where()}: reference_size_px row {i} = {size[i].tolist()} is not a "
+                             "(height, width) of at least 1 pixel")
+        put("reference_size_px", size)
+        if self.reference_metres_per_px is not None:
+            scale = np.asarray(self.reference_metres_per_px, np.float64)
+            if scale.shape != (n,):
+                raise ValueError(f"{self._where()}: reference_metres_per_px has shape {scale.shape}, expected "
+                                 f"({n},), one scale per reference")
+            bad = ~(np.isfinite(scale) & (scale > 0))
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(f"{self._where()}: reference_metres_per_px[{i}] = {scale[i]} ({self.references[i]}) "
+                                 "is not a positive number of metres per pixel")
+            put("reference_metres_per_px", scale)
+        if self.query_tile_px is not None:
+            put("query_tile_px", self._tile_px("query_tile_px", self.query_tile_px, (q, 2),
+                                               self.positives[:, None]))
+        if self.query_semi_tile_px is not None:
+            if self.semi_positives is None:
+                raise ValueError(f"{self._where()}: query_semi_tile_px needs semi_positives, the tiles it refers to")
+            s = self.semi_positives.shape[1]
+            put("query_semi_tile_px", self._tile_px("query_semi_tile_px", self.query_semi_tile_px, (q, s, 2),
+                                                    self.semi_positives))
+
+    def _tile_px(self, key: str, value, shape: tuple, tiles: np.ndarray) -> np.ndarray:
+        """(row, col) positions in the given tiles ((Q, S) reference indices, -1 for none): finite and inside each
+        tile's pixel frame where a tile is given, NaN where none is."""
+        a = np.asarray(value, np.float64)
+        if a.shape != shape:
+            raise ValueError(f"{self._where()}: {key} has shape {a.shape}, expected {shape} of (row, col) pixels")
+        a = a.reshape(shape[0], -1, 2).copy()
+        given = tiles >= 0
+        frame = self.reference_size_px[np.where(given, tiles, 0)]
+        inside = np.isfinite(a).all(-1) & (a >= 0).all(-1) & (a <= frame).all(-1)
+        bad = given & ~inside
+        if bad.any():
+            i, j = (int(v) for v in np.argwhere(bad)[0])
+            tile = int(tiles[i, j])
+            raise ValueError(f"{self._where()}: {key} of query {i} ({self.queries[i]}) is {a[i, j].tolist()}, "
+                             f"outside tile {tile} ({self.references[tile]}) of {frame[i, j].tolist()} pixels; "
+                             f"a position is (row, col) within (0, 0)..(height, width) ({bad.sum()} such)")
+        a[~given] = np.nan
+        return a.reshape(shape)

@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.datasets.common import pairs_split, require_root
+from geoloc.datasets.common import pairs_split, require_root, tile_frame
 from geoloc.registry import register
 
 CVACT_SPLITS = {"train": ("trainSet", "trainInd", "ANU_data_small"),
                 "val": ("valSet", "valInd", "ANU_data_small"),
                 "test": ("valSetAll", "valInd", "ANU_data_test")}
+TILE_PX = 1200  # satview_polish tiles are 1200 x 1200, centred on the panorama; the release gives no ground scale
 
 
 def cvact_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
@@ -66,4 +67,4 @@ def cvact(root: str, split: str) -> RetrievalSplit:
     require_root(root, "cvact")
     pairs, utm = cvact_index(root, split)
     return pairs_split(f"cvact/{split}", root, pairs, query_view="sphere",
-                       positions=None if utm is None else ("xy", utm))
+                       positions=None if utm is None else ("xy", utm), tile=tile_frame(root, TILE_PX))

@@ -10,11 +10,12 @@ import csv
 from pathlib import Path
 
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.datasets.common import pairs_split, require_root
+from geoloc.datasets.common import pairs_split, require_root, tile_frame
 from geoloc.data.positions import read_positions
 from geoloc.registry import register
 
 CVUSA_SPLITS = {"train": "train-19zl.csv", "val": "val-19zl.csv"}
+TILE_PX = 750  # bingmap/19 tiles are 750 x 750, centred on the panorama; the release gives no ground scale
 
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -58,9 +59,11 @@ def _cvusa_row(row: list[str], where: str) -> tuple[str, str]:
 
 
 def cvusa_layout_split(name: str, root, split: str) -> RetrievalSplit:
-    """CVUSA's split files, with the optional positions.csv (geoloc/data/positions.py)."""
+    """CVUSA's split files, with the optional positions.csv (geoloc/data/positions.py); the tiles' frame is the
+    release's, or a synthetic tree's own (datasets/common.py tile_frame)."""
     pairs = cvusa_pairs(root, split)
-    return pairs_split(name, root, pairs, positions=read_positions(Path(root), [street for street, _ in pairs]))
+    return pairs_split(name, root, pairs, positions=read_positions(Path(root), [street for street, _ in pairs]),
+                       tile=tile_frame(root, TILE_PX))
 
 
 @register("dataset", "cvusa")

@@ -8,9 +8,18 @@
 
 A split line has 13 space-separated fields: the panorama file name, then 4 x (satellite file name, two pixel
 offsets). The first satellite is the positive, the other three the semi-positives. The offsets are the satellite
-centre minus the panorama position, (north, east) in satellite pixels: the panorama sits at row 320 + f1,
-column 320 - f2 of the 640 px tile (VIGOR's evaluate_from_npy.py). They are checked to be numbers and otherwise
-unused: metres come from the lat/lon in the file names.
+centre minus the panorama position, (north, east) in pixels of the 640 px tile: the panorama sits at row 320 + f1,
+column 320 - f2 (CCVPE's datasets.py). They give each query's position in its tiles (RetrievalSplit.query_tile_px,
+query_semi_tile_px), with the per-city metres per pixel of CCVPE's train_VIGOR.py (METRES_PER_PX); metre
+distances between places come from the lat/lon in the file names.
+
+SliceMatch's corrected labels (`splits_dir=splits__corrected`) are read as released: the same 13-field lines in
+`<City>/same_area_balanced_{train,test}__corrected.txt` and `pano_label_balanced__corrected.txt`, beside
+`satellite_list.txt`.
+
+geoloc's synthetic vigor tree (geoloc/synthetic/vigor_layout.py) renders tiles of its own size and scale, which its
+marker gives (geoloc.synthetic.tile_geometry), and writes the offsets unrounded in ROOT/geoloc_offsets.json
+(geoloc/data/tile_offsets.py), which are used instead of the rounded ones when present.
 
 Settings, as VIGOR's dataloader.py reads them:
 - same_area: each of the four cities' same_area_balanced_{train,test}.txt;
@@ -24,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.datasets.common import with_view
+from geoloc.data.tile_offsets import OFFSETS_FILE, read_offsets
+from geoloc.datasets.common import tile_frame, with_view
 from geoloc.registry import register
 
 CITIES = ("Chicago", "NewYork", "SanFrancisco", "Seattle")  # the released folder names
@@ -32,6 +42,10 @@ SETTINGS = ("same_area", "cross_area")
 SPLITS = ("train", "test")
 CROSS_AREA_CITIES = {"train": ("NewYork", "Seattle"), "test": ("Chicago", "SanFrancisco")}
 FIELDS = 13
+TILE_PX = 640  # the released satellite tiles are 640 x 640
+# ground metres per tile pixel in each city (CCVPE's train_VIGOR.py)
+METRES_PER_PX = {"NewYork": 0.113248, "Seattle": 0.100817, "SanFrancisco": 0.118141, "Chicago": 0.111262}
+CORRECTED = "__corrected"  # SliceMatch's file-name suffix
 
 
 def default_cities(setting: str, split: str) -> tuple[str, ...]:
@@ -50,14 +64,16 @@ def split_file(setting: str, split: str) -> str:
 def vigor_split(root, setting: str = "same_area", split: str = "test", cities=None,
                 splits_dir: str = "splits") -> RetrievalSplit:
     """Read (setting, split) for the given cities (default: the setting's, see default_cities). splits_dir names
-    the folder of split files under root: `splits` as released, or e.g. `splits__corrected` (SliceMatch's
-    re-computed labels, same format)."""
+    the folder of split files under root: `splits` as released, or `splits__corrected` (SliceMatch's re-computed
+    labels: the same format, file names ending in `__corrected`)."""
     root = Path(root)
     cities = tuple(default_cities(setting, split) if cities is None else cities)
     listing = split_file(setting, split)
     if not cities or len(set(cities)) != len(cities):
         raise ValueError(f"VIGOR cities must be a non-empty list without repeats, got {list(cities)}")
-    references, ref_latlon, queries, q_latlon, positives, semi = [], [], [], [], [], []
+    tile_px, synthetic_scale = tile_frame(root, TILE_PX)
+    truth = read_offsets(root)
+    references, ref_latlon, ref_scale, queries, q_latlon, positives, semi, offsets = [], [], [], [], [], [], [], []
     for city in cities:
         city_dir = root / splits_dir / city
         if not city_dir.is_dir():
@@ -72,8 +88,10 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
             index[name] = len(references)
             references.append(root / city / "satellite" / name)
             ref_latlon.append(satellite_latlon(name, f"{city_dir / 'satellite_list.txt'}:{line_no}"))
-        for pano, sats, line_no in _split_lines(city_dir / listing):
-            where = f"{city_dir / listing}:{line_no}"
+        ref_scale += [synthetic_scale or METRES_PER_PX.get(city, np.nan)] * (len(references) - len(ref_scale))
+        path = _listing(city_dir, listing)
+        for pano, sats, deltas, line_no in _split_lines(path):
+            where = f"{path}:{line_no}"
             missing = [s for s in sats if s not in index]
             if missing:
                 raise ValueError(f"{where}: satellite {missing[0]} is not in {city_dir / 'satellite_list.txt'} "
@@ -82,13 +100,42 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
             q_latlon.append(panorama_latlon(pano, where))
             positives.append(index[sats[0]])
             semi.append([index[s] for s in sats[1:]])
+            offsets.append(deltas if truth is None else _true_offsets(truth, city, pano, sats, deltas, where))
     if not queries:
         raise ValueError(f"VIGOR {setting} {split}: the {listing} files of {list(cities)} under {root / splits_dir} "
                          "list no panorama")
+    deltas = np.asarray(offsets, np.float64)  # Q x 4 x (north, east) pixels, tile centre minus panorama
+    position = np.stack([tile_px / 2 + deltas[..., 0], tile_px / 2 - deltas[..., 1]], -1)  # (row, col)
+    scale = np.asarray(ref_scale, np.float64)
     return RetrievalSplit(
         name=f"vigor/{setting}/{split}", root=root, queries=queries, references=references,
         positives=np.asarray(positives, np.int64), semi_positives=np.asarray(semi, np.int64).reshape(len(semi), 3),
-        query_latlon=np.asarray(q_latlon), reference_latlon=np.asarray(ref_latlon))
+        query_latlon=np.asarray(q_latlon), reference_latlon=np.asarray(ref_latlon),
+        reference_size_px=np.full((len(references), 2), tile_px, np.int64),
+        reference_metres_per_px=None if np.isnan(scale).any() else scale,  # a city of unknown scale: none
+        query_tile_px=position[:, 0], query_semi_tile_px=position[:, 1:])
+
+
+def _listing(city_dir: Path, listing: str) -> Path:
+    """The split file as released: `listing`, or SliceMatch's `<stem>__corrected.txt` in a corrected folder."""
+    plain, corrected = city_dir / listing, city_dir / listing.replace(".txt", f"{CORRECTED}.txt")
+    if plain.is_file() and corrected.is_file():
+        raise ValueError(f"{city_dir} holds both {plain.name} and {corrected.name}; keep the original labels in "
+                         f"splits/ and SliceMatch's in splits__corrected/ (dataset.splits_dir picks the folder)")
+    return corrected if corrected.is_file() else plain
+
+
+def _true_offsets(truth: dict, city: str, pano: str, sats: list[str], rounded: list, where: str) -> list:
+    """The unrounded offsets of one split line, checked against its rounded ones."""
+    try:
+        out = [[float(v) for v in truth[city][pano][s]] for s in sats]
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{where}: {OFFSETS_FILE} has no offsets for panorama {pano} and its tiles; it belongs to "
+                         "another rendering: delete it and load the synthetic dataset again") from None
+    if np.abs(np.asarray(out) - np.asarray(rounded)).max() > 0.5 + 1e-6:
+        raise ValueError(f"{where}: the offsets in {OFFSETS_FILE} ({out}) do not round to the split line's "
+                         f"({rounded}); it belongs to another rendering: delete it and load the dataset again")
+    return out
 
 
 def panorama_latlon(name: str, where: str = "") -> tuple[float, float]:
@@ -126,10 +173,12 @@ def _satellite_list(path: Path):
 
 
 def _split_lines(path: Path):
-    """-> (panorama name, [positive, 3 semi-positives], line number) per non-empty line."""
+    """-> (panorama name, [positive, 3 semi-positives], 4 x [north, east] pixel offsets, line number) per non-empty
+    line."""
     if not path.is_file():
         raise FileNotFoundError(f"VIGOR split file {path} not found (same_area reads "
-                                "same_area_balanced_{train,test}.txt, cross_area pano_label_balanced.txt)")
+                                "same_area_balanced_{train,test}.txt, cross_area pano_label_balanced.txt; "
+                                f"SliceMatch's corrected folder the same names ending in {CORRECTED}.txt)")
     for k, line in enumerate(path.read_text().splitlines(), 1):
         fields = line.split()
         if not fields:
@@ -137,12 +186,15 @@ def _split_lines(path: Path):
         if len(fields) != FIELDS:
             raise ValueError(f"{path}:{k}: expected {FIELDS} space-separated fields (panorama, then 4 x "
                              f"(satellite, two pixel offsets)), got {len(fields)}: {line.strip()[:120]!r}")
+        offsets = []
         for j in (2, 3, 5, 6, 8, 9, 11, 12):
             try:
-                float(fields[j])
+                offsets.append(float(fields[j]))
             except ValueError:
                 raise ValueError(f"{path}:{k}: field {j + 1} should be a pixel offset, got {fields[j]!r}") from None
-        yield fields[0], [fields[1], fields[4], fields[7], fields[10]], k
+        if not np.isfinite(offsets).all():
+            raise ValueError(f"{path}:{k}: the pixel offsets must be finite numbers, got {offsets}")
+        yield fields[0], fields[1::3], [offsets[i:i + 2] for i in range(0, 8, 2)], k
 
 
 def _check_choice(key: str, value, choices) -> None:

@@ -15,6 +15,8 @@ import subprocess
 import torch
 import torch.distributed as dist
 
+from geoloc.engine.device import resolve_device
+
 
 def _env_int(*names: str, default: int) -> int:
     for name in names:
@@ -28,9 +30,7 @@ def init_from_env(device: str = "auto") -> torch.device:
 
     `device` is "auto", "cpu" or "cuda". On CPU the backend is gloo, on CUDA nccl.
     """
-    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
-    if use_cuda and not torch.cuda.is_available():
-        raise RuntimeError(f"trainer.device={device!r} but CUDA is not available on this machine; use device=cpu.")
+    use_cuda = resolve_device(device).type == "cuda"
     world_size = _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1)
     local_rank = _env_int("LOCAL_RANK", "SLURM_LOCALID", default=0)
     if world_size > 1 and not dist.is_initialized():

@@ -49,6 +49,11 @@ class Task(nn.Module):
         """Metrics from all validation outputs, concatenated over batches and ranks in dataset order."""
         raise NotImplementedError
 
+    def checkpoint_info(self) -> dict[str, Any]:
+        """What a checkpoint records of the task beyond its weights and config, in plain types (strings, numbers,
+        lists, dicts), e.g. the kind of query images the cross-view task trained on; stored as `task_info`."""
+        return {}
+
     def forward(self, batch: dict[str, torch.Tensor], engine: Any) -> dict[str, Any]:
         # DDP only syncs gradients of what runs inside forward(), so the trainer calls the step through here.
         return self.training_step(batch, engine)

@@ -196,6 +196,7 @@ class Trainer:
             "monitor": self.monitor(task),
             "monitor_mode": self.cfg.monitor_mode,
             "config": self.config_yaml,
+            "task_info": task.checkpoint_info(),
             "init_from": self.init_from,
             "rng": ckpt_io.rng_state(),
             "geoloc_version": geoloc.__version__,

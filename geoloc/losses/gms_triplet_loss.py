@@ -1,8 +1,8 @@
 """The paper's loss as a plug-in: the weighted soft-margin triplet with the GMS global hard-negative queue.
 
 Li, Tu, Chen, Yu, "Multi-scale attention encoder for street-to-aerial image geo-localization" (CAAI TIT 2023):
-alpha 10, queue of 1,024 reference descriptors (0 = the "w/o GMS" row). Formulas: geoloc/losses/triplet.py and
-gms_queue.py, DESIGN.md.
+alpha 10 and a fixed-length queue of reference descriptors (0 = the "w/o GMS" row). The paper gives no length: the
+default 1,024 (the paper configs') is geoloc's choice. Formulas: geoloc/losses/triplet.py and gms_queue.py, DESIGN.md.
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ from .appearance import AppearanceGap
 from .classes import ALL_CLASSES, STATIC_CLASSES
 from .config import LAYOUTS, PRESETS, SynthConfig
 from .generate import MARKER, VERSION, DatasetMismatchError, default_cache, ensure_dataset, generate
+from .geometry import tile_geometry
 
 __all__ = ["generate", "ensure_dataset", "SynthConfig", "AppearanceGap", "PRESETS", "LAYOUTS", "MARKER", "VERSION",
-           "DatasetMismatchError", "default_cache", "STATIC_CLASSES", "ALL_CLASSES"]
+           "DatasetMismatchError", "default_cache", "STATIC_CLASSES", "ALL_CLASSES", "tile_geometry"]

@@ -31,7 +31,8 @@ VERSION = "1.0"
 MARKER = "geoloc_synthetic.json"
 PARTIAL = ".geoloc_partial"
 # Layouts written by a module with check(cfg, opts), jobs(opts, train, val), run(cfg, opts, seed, kind, index,
-# number, root) -> record, and finish(root, opts, jobs, records). The three older layouts are written below.
+# number, root) -> record, and finish(root, opts, jobs, records); optionally DERIVED (file names) and derived(root,
+# cfg, opts), which writes them from the split files alone. The three older layouts are written below.
 WRITERS = {"vigor": vigor_layout, "u1652": u1652_layout}
 
 
@@ -72,6 +73,7 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
             if layout == "cvusa" and not (root / LY.POSITIONS_FILE).exists():  # rendered before positions.csv
                 jobs = _jobs(layout, train, val)
                 LY.write_cvusa_positions(root, {s: [n for js, _, n in jobs if js == s] for s in ("train", "val")})
+            _derived(layout, root, cfg, opts, missing_only=True)
             return root
         return _render(layout, root, marker, cfg, opts, train, val, seed, workers, progress)
 
@@ -124,6 +126,7 @@ def _render(layout: str, root: Path, marker: dict, cfg, opts, train: int, val: i
     if layout in WRITERS:
         records = {n: json.loads((done / f"{n:07d}.json").read_text()) for _, _, n in jobs}
         WRITERS[layout].finish(root, opts, jobs, records)
+        _derived(layout, root, cfg, opts)
     else:
         _finish(layout, root, jobs, done)
     shutil.rmtree(done)
@@ -170,6 +173,17 @@ def _check_out(root: Path, marker: dict) -> bool:
             f"{root} holds a synthetic dataset made with other arguments (differs in: {', '.join(diff)}). "
             "Nothing was changed; use another directory, or delete it yourself to regenerate.")
     return bool(complete)
+
+
+def _derived(layout: str, root: Path, cfg: SynthConfig, opts, missing_only: bool = False) -> None:
+    """The layout's derived files (WRITERS above): written after its split files, and again when a complete dataset
+    lacks one (rendered before the file existed: its images stay as they are, the marker too)."""
+    writer = WRITERS.get(layout)
+    if not hasattr(writer, "derived"):
+        return
+    if missing_only and all((root / name).is_file() for name in writer.DERIVED):
+        return
+    writer.derived(root, cfg, opts)
 
 
 def _write_marker(root: Path, marker: dict, complete: bool) -> None:

@@ -7,8 +7,14 @@
     splits/<City>/same_area_balanced_test.txt      `val` panoramas of the city
     splits/<City>/pano_label_balanced.txt          all of them, train lines then test lines (cross-area)
 
+    geoloc_offsets.json                            the same offsets unrounded (geoloc's own; see below)
+
 A split line is VIGOR's 13 fields: the panorama, then the positive and three semi-positive tiles (tiles.py), each
 with the tile centre minus the panorama position as (north, east) satellite pixels, rounded, written like "23.0".
+`geoloc_offsets.json` holds them unrounded, {"offsets": {city: {panorama: {satellite: [north, east]}}}}, so a
+metre-level target can be measured; the reader (geoloc.datasets.vigor) uses it when present. It is derived from the
+split files alone (the position a panorama's name gives is where it was rendered: panorama_position), so a dataset
+rendered before the file existed gets it on its next use, its images untouched (`derived`).
 Jobs: one per city for its tiles, one per panorama.
 """
 from __future__ import annotations
@@ -16,15 +22,19 @@ from __future__ import annotations
 import string
 from pathlib import Path
 
-from geoloc.data.geo import offset_to_latlon
+from geoloc.data.geo import latlon_to_offset, offset_to_latlon
+from geoloc.data.tile_offsets import OFFSETS_FILE, offsets_text
 
 from . import layouts as LY
-from .city import CITY_NAMES, City, build_city, city_rngs, panorama_position, render_panorama, render_tiles
+from .city import (CITY_NAMES, CITY_ORIGINS, City, build_city, city_rngs, panorama_position, render_panorama,
+                   render_tiles)
 from .config import SynthConfig, VigorOptions
+from .tiles import TileGrid
 
 SPLIT_CODES = {"train": 1, "val": 2}
 SPLIT_FILES = {"train": "same_area_balanced_train.txt", "val": "same_area_balanced_test.txt"}
 CROSS_AREA_FILE = "pano_label_balanced.txt"
+DERIVED = (OFFSETS_FILE,)
 ID_CHARS = string.ascii_letters + string.digits + "-_"  # 22 of them make an id like VIGOR's panoids
 
 
@@ -78,16 +88,44 @@ def finish(root: Path, opts: VigorOptions, jobs: list, records: dict) -> None:
 
 
 def satellite_name(city: City, ix: int, iy: int) -> str:
-    lat, lon = offset_to_latlon(city.origin, *city.grid.centre(ix, iy))
+    return _satellite_name(city.origin, city.grid, ix, iy)
+
+
+def _satellite_name(origin, grid: TileGrid, ix: int, iy: int) -> str:
+    lat, lon = offset_to_latlon(origin, *grid.centre(ix, iy))
     return f"satellite_{float(lat)!r}_{float(lon)!r}.png"
 
 
 def split_line(city: City, pano_name: str, east: float, north: float, tile_px: int) -> str:
     """VIGOR's 13 fields for a panorama at (east, north) metres."""
-    metres_per_px = city.grid.tile_m / tile_px
     fields = [pano_name]
     for ix, iy in city.grid.tiles_holding(east, north):
-        ce, cn = city.grid.centre(ix, iy)
-        fields += [satellite_name(city, ix, iy), f"{round((cn - north) / metres_per_px):.1f}",
-                   f"{round((ce - east) / metres_per_px):.1f}"]
+        d_north, d_east = tile_offset_px(city.grid, ix, iy, east, north, tile_px)
+        fields += [satellite_name(city, ix, iy), f"{round(d_north):.1f}", f"{round(d_east):.1f}"]
     return " ".join(fields)
+
+
+def tile_offset_px(grid: TileGrid, ix: int, iy: int, east: float, north: float, tile_px: int) -> tuple[float, float]:
+    """Tile (ix, iy)'s centre minus the point (east, north) metres, as (north, east) pixels of a tile_px tile."""
+    metres_per_px = grid.tile_m / tile_px
+    ce, cn = grid.centre(ix, iy)
+    return (cn - north) / metres_per_px, (ce - east) / metres_per_px
+
+
+def derived(root: Path, cfg: SynthConfig, opts: VigorOptions) -> None:
+    """Write geoloc_offsets.json (geoloc/data/tile_offsets.py) from the split files (module docstring): every
+    panorama of pano_label_balanced.txt, each
+    tile of its line, the offset unrounded."""
+    grid = TileGrid.fit(opts.grid, cfg.tile_m, cfg.cell_m)
+    offsets = {}
+    for c in range(opts.cities):
+        name, origin = CITY_NAMES[c], CITY_ORIGINS[CITY_NAMES[c]]
+        tiles = {_satellite_name(origin, grid, ix, iy): (ix, iy) for iy in range(grid.n) for ix in range(grid.n)}
+        city = offsets[name] = {}
+        for line in (root / "splits" / name / CROSS_AREA_FILE).read_text().splitlines():
+            fields = line.split()
+            lat, lon = (float(v) for v in fields[0].split(",")[-3:-1])
+            east, north = (float(v) for v in latlon_to_offset(origin, (lat, lon)))
+            city[fields[0]] = {sat: list(tile_offset_px(grid, *tiles[sat], east, north, cfg.aerial_size))
+                               for sat in fields[1::3]}
+    LY.write_bytes(root / OFFSETS_FILE, offsets_text(offsets).encode())

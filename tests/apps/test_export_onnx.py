@@ -26,13 +26,16 @@ def compose_export(overrides: list[str]):
         return compose("export", overrides=overrides)
 
 
-def write_checkpoint(path, overrides: list[str]):
-    """A checkpoint as the trainer writes it (the task's weights and the resolved config), untrained: export
-    needs no data, and any weights test the graph as well as trained ones."""
+def write_checkpoint(path, overrides: list[str], views: dict | None = None):
+    """A checkpoint as the trainer writes it (the task's weights, the resolved config and the query views of the
+    splits it saw, by default CVUSA's), untrained: export needs no data, and any weights test the graph as well as
+    trained ones."""
     cfg = compose_train([*TINY, *overrides, f"run_dir={path.parent}"])
     torch.manual_seed(0)
     task = task_of(cfg)
-    ckpt_io.save_atomic({"task": task.state_dict(), "config": to_yaml(cfg), "epoch": 0}, path)
+    task.query_views = views if views is not None else {"train": "panorama", "val": "panorama"}
+    ckpt_io.save_atomic({"task": task.state_dict(), "config": to_yaml(cfg), "epoch": 0,
+                         "task_info": task.checkpoint_info()}, path)
     return task
 
 
@@ -96,34 +99,20 @@ def test_existing_files_are_refused_unless_overwrite(exported):
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
 
 
-@pytest.mark.parametrize("alignment, view, query_hw, reference_hw", [
-    ("ipt", "panorama", (32, 32), (32, 32)),
-    ("ipt", "sphere", (32, 32), (32, 32)),
-    ("polar", "panorama", (16, 64), (16, 64)),
-    ("none", "panorama", (16, 64), (32, 32)),
-    ("none", "image", (32, 32), (32, 32)),  # University-1652's drone photos: the aerial branch's square size
-])
-def test_input_shapes_follow_the_data_module(alignment, view, query_hw, reference_hw):
-    """The JSON's shapes are the shapes geoloc.tasks.crossview.datasets makes from real images of each view."""
-    from geoloc.apps.export.input_spec import query_input, reference_input
-    from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-    from geoloc.tasks.crossview.transforms import align_query, align_reference
+def test_the_spec_describes_the_recorded_query_view_and_where_queries_go(tmp_path):
+    """University-1652 satellite -> drone: the checkpoint records drone photos ("image") for the query branch and
+    aerial queries for its validation split, so query.onnx is described as taking photos, and the spec says the
+    queries go through reference.onnx (against a gallery of photos through query.onnx)."""
+    from geoloc.apps.export.onnx_export import export_encoders
+    from geoloc.tasks.crossview import CrossViewEncoder
 
-    cfg = CrossViewDataConfig(alignment=alignment, aerial_size=32, pano_size=[16, 64])
-    street = np.zeros((40 if view == "sphere" else 20, 120, 3), np.uint8)
-    assert query_input(cfg, view)[0] == query_hw == align_query(street, cfg, view).shape[:2]
-    assert reference_input(cfg)[0] == reference_hw == align_reference(np.zeros((50, 50, 3), np.uint8), cfg).shape[:2]
-
-
-def test_query_view_comes_from_the_reader_unless_given():
-    from geoloc.apps.export.input_spec import query_view_of
-
-    assert query_view_of("cvusa", "auto") == "panorama"
-    assert query_view_of("u1652", "auto") == "image"
-    assert query_view_of("vigor", None) == "sphere"
-    assert query_view_of("u1652", "panorama") == "panorama"
-    with pytest.raises(ValueError, match="query_view='drone' is not one of"):
-        query_view_of("cvusa", "drone")
+    write_checkpoint(tmp_path / "best.pt", ["dataset.alignment=none"], views={"train": "image", "val": "aerial"})
+    encoder = CrossViewEncoder.load(tmp_path / "best.pt")
+    spec = export_encoders(encoder, tmp_path / "onnx")
+    assert spec["query"]["view"] == "ground (image)" and spec["query"]["input"]["shape"] == ["batch", 3, 32, 32]
+    assert spec["queries"] == {"view": "aerial", "file": "reference.onnx",
+                               "gallery": {"view": "image", "file": "query.onnx"}}
+    assert "resize to 32x32 (cv2.INTER_AREA)" in spec["query"]["preprocessing"]["steps"]
 
 
 def test_other_formats_are_refused(tmp_path):

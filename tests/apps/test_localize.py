@@ -80,7 +80,7 @@ def brute_force(localizer, inputs, headings):
     """Every gallery row's best score over the candidate inputs, one forward pass each (no batching)."""
     reference = localizer.index._descriptors
     with torch.no_grad():
-        scores = torch.stack([localizer.encoder(x[None])[0] @ reference.t() for x in inputs])  # K x N
+        scores = torch.stack([localizer.encoder.encode_street(x[None])[0] @ reference.t() for x in inputs])  # K x N
     best, k = scores.max(dim=0)
     order = sorted(range(len(best)), key=lambda r: (-float(best[r]), r))
     return [(r, float(best[r]), float(headings[int(k[r])])) for r in order]
@@ -89,18 +89,18 @@ def brute_force(localizer, inputs, headings):
 def test_localize_equals_brute_force_scoring_with_and_without_heading_search(gallery):
     root, ckpt, folder = gallery
     loc = Localizer.load(ckpt, folder, device="cpu", heading_steps=8)
-    pairs = CrossViewPairs(cvusa(str(root), "val"), loc.data_cfg, train=False)
+    pairs = CrossViewPairs(cvusa(str(root), "val"), loc.encoder.data, train=False)
     i = 3
     path = pairs.split.queries[i]
     image = read_street(path)
 
-    known = loc.localize(image, topk=4, heading=0, path=path)
+    known = loc.localize(image, topk=4, heading=0, path=path).to_json()
     expect = brute_force(loc, pairs[i]["query"][None], np.array([0.0]))  # the evaluation's own query input
     assert [h["row"] for h in known["topk"]] == [r for r, _, _ in expect[:4]]
     assert [h["score"] for h in known["topk"]] == pytest.approx([s for _, s, _ in expect[:4]], abs=1e-5)
 
-    searched = loc.localize(image, topk=5, path=path)
-    inputs, headings = query_candidates(image, loc.data_cfg, "panorama", 360.0, 8)
+    searched = loc.localize(image, topk=5, path=path).to_json()
+    inputs, headings = query_candidates(image, loc.encoder.data, "panorama", 360.0, 8)
     expect = brute_force(loc, inputs, headings)[:5]
     assert [(h["row"], h["heading_deg"]) for h in searched["topk"]] == [(r, hd) for r, _, hd in expect]
     assert searched["heading_deg"] == expect[0][2]
@@ -118,8 +118,8 @@ def test_a_limited_fov_photo_is_placed_on_the_canvas(gallery):
     loc = Localizer.load(ckpt, folder, device="cpu")
     image = read_street(root / "streetview/panos/0000013.jpg")
     photo = image[:, 10:42]  # 32 of 64 columns: a 180° view
-    answer = loc.localize(photo, fov=180.0, topk=2, heading=90.0)
-    x = to_tensor(align_query(view_canvas(photo, 180.0, 90.0), loc.data_cfg, "panorama"))
+    answer = loc.localize(photo, fov=180.0, topk=2, heading=90.0).to_json()
+    x = to_tensor(align_query(view_canvas(photo, 180.0, 90.0), loc.encoder.data, "panorama"))
     assert answer["topk"][0]["row"] == brute_force(loc, x[None], np.array([90.0]))[0][0]
     assert answer["heading_deg"] == 90.0 and "truth" not in answer  # no path given: the truth is not looked up
 
@@ -181,7 +181,7 @@ def test_localize_a_real_cvusa_panorama_against_a_gallery_of_its_folder(gallery,
                                    "dataset=cvusa", f"dataset.root={root}", f"gallery.save={folder}"]))
     loc = Localizer.load(ckpt, folder, device="cpu")
     split = cvusa(str(root), "val")
-    answer = loc.localize(read_street(split.queries[1]), topk=5, heading=0, path=split.queries[1])
+    answer = loc.localize(read_street(split.queries[1]), topk=5, heading=0, path=split.queries[1]).to_json()
     assert len(answer["topk"]) == 2 and answer["truth"]["row"] == 1  # the gallery holds the 2 val tiles
     assert answer["position"] is None and "error_m" not in answer["truth"]  # CVUSA's release has no positions
     assert answer["truth"]["reference"] == "bingmap/19/0000005.jpg"

@@ -254,7 +254,7 @@ def test_the_real_localizer_answers_through_the_service_exactly_as_when_called(r
     assert served.status_code == 200, served.text
     settings = {key: float(value) for key, value in fields.items() if key != "topk"}
     direct = localizer.localize(read_street(pano), topk=int(fields["topk"]), name=pano.name, **settings)
-    assert served.json() == json.loads(json.dumps(direct)) and len(direct["topk"]) == int(fields["topk"])
+    assert served.json() == json.loads(json.dumps(direct.to_json())) and len(direct.topk) == int(fields["topk"])
 
 
 @contextlib.contextmanager
@@ -305,7 +305,7 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
 
     class Localizer:
         @classmethod
-        def load(cls, ckpt, gallery_dir, device="cpu", heading_steps=36):
+        def load(cls, ckpt, gallery_dir, device=None, heading_steps=36):
             loads.append((ckpt, gallery_dir, device, heading_steps))
             return FakeLocalizer()
 
@@ -313,7 +313,7 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
     monkeypatch.setattr(uvicorn, "run", lambda app, host, port: runs.append((app, host, port)))
     assert cli.main(["serve", "ckpt=run/best.pt", "gallery=run/gallery", "port=8123", "max_pixels=100",
                      "heading_steps=12"]) == 0
-    assert loads == [("run/best.pt", "run/gallery", "cpu", 12)]
+    assert loads == [("run/best.pt", "run/gallery", None, 12)]  # no device given: the encoder's rule (auto)
     (app, host, port), = runs
     assert (host, port) == ("127.0.0.1", 8123)
     answer = TestClient(app).post("/localize", **GOOD)  # max_pixels=100 reached the app: 80x40 is over it

@@ -68,3 +68,54 @@ def test_valid_split_is_normalised():
 def test_bad_splits_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         _split(**kw)
+
+
+def _tiles(**kw):
+    """Three queries on two 64 x 32 tiles of 0.5 m per pixel; query 2 has one semi-positive."""
+    args = dict(semi_positives=[[1], [0], [-1]], reference_size_px=[[64, 32], [64, 32]],
+                reference_metres_per_px=[0.5, 0.5], query_tile_px=[[32, 16], [0, 32], [10, 4]],
+                query_semi_tile_px=[[[1, 2]], [[3, 4]], [[5, 6]]])
+    args.update(kw)
+    return _split(**args)
+
+
+def test_tile_geometry_and_query_positions():
+    s = _tiles()
+    assert s.reference_size_px.dtype == np.int64 and s.query_tile_px.dtype == np.float64
+    np.testing.assert_array_equal(s.reference_extent_m, [[32, 16], [32, 16]])
+    assert np.isnan(s.query_semi_tile_px[2]).all() and s.query_semi_tile_px[1].tolist() == [[3, 4]]  # -1: none
+    # (east, north) metres from the positive's centre (row 32, col 16): the centre, the north-east corner, ...
+    np.testing.assert_allclose(s.query_tile_offset_m(), [[0, 0], [8, 16], [-6, 11]])
+    assert _tiles(reference_metres_per_px=None).query_tile_offset_m() is None
+    assert _tiles(reference_metres_per_px=None).reference_extent_m is None
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(reference_size_px=None), "reference_metres_per_px needs reference_size_px"),
+    (dict(reference_size_px=None, reference_metres_per_px=None), "query_tile_px needs reference_size_px"),
+    (dict(reference_size_px=[[64, 32]]), r"reference_size_px has shape \(1, 2\), expected \(2, 2\)"),
+    (dict(reference_size_px=[[64, 32], [0, 32]]), r"reference_size_px row 1 = \[0, 32\] is not a \(height, width\)"),
+    (dict(reference_metres_per_px=[0.5, -1.0]), r"reference_metres_per_px\[1\] = -1.0 \(r1\) is not a positive"),
+    (dict(reference_metres_per_px=[0.5]), r"reference_metres_per_px has shape \(1,\), expected \(2,\)"),
+    (dict(query_tile_px=[[32, 16], [0, 33], [10, 4]]), r"query_tile_px of query 1 \(q1\) is \[0.0, 33.0\], outside "
+                                                        r"tile 1 \(r1\) of \[64, 32\] pixels"),
+    (dict(query_tile_px=[[32, 16], [0, 32], [np.nan, 4]]), "query_tile_px of query 2"),
+    (dict(query_tile_px=[[32, 16], [0, 32]]), r"query_tile_px has shape \(2, 2\), expected \(3, 2\)"),
+    (dict(query_semi_tile_px=[[[1, 2]], [[3, -4]], [[5, 6]]]), "query_semi_tile_px of query 1"),
+    (dict(semi_positives=None), "query_semi_tile_px needs semi_positives"),
+])
+def test_bad_tile_geometry_is_refused(kw, match):
+    with pytest.raises(ValueError, match=match):
+        _tiles(**kw)
+
+
+def test_cutting_a_split_cuts_its_positions():
+    from geoloc.tasks.crossview.datasets import limited
+
+    s = limited(_tiles(), 2)
+    assert s.num_queries == 2 and s.query_tile_px.shape == (2, 2) and s.query_semi_tile_px.shape == (2, 1, 2)
+    assert s.reference_size_px.shape == (2, 2)  # not one-to-one: the gallery stays whole
+    pairs = _split(queries=["q0", "q1"], positives=[0, 1], reference_size_px=[[8, 8]] * 2,
+                   reference_metres_per_px=[1.0, 2.0], query_tile_px=[[4, 4]] * 2)
+    one = limited(pairs, 1)
+    assert one.num_references == 1 and one.reference_metres_per_px.tolist() == [1.0]

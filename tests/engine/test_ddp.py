@@ -128,7 +128,10 @@ def test_two_process_steps_equal_one_process_step(tiny_cvusa, tmp_path):
             assert b["loss"].item() == pytest.approx(a["loss"].item(), rel=1e-5, abs=1e-6), (rank, step)
             assert a["grads"].keys() == b["grads"].keys()
             for name, grad in a["grads"].items():
-                torch.testing.assert_close(b["grads"][name], grad, rtol=1e-4, atol=1e-6,
+                # 2 ranks sum in another order: entries near zero in a tensor of gradients near 0.1 differ by
+                # float32 rounding of that scale (~1e-6), so the absolute tolerance follows the tensor's scale
+                scale = float(grad.abs().max())
+                torch.testing.assert_close(b["grads"][name], grad, rtol=1e-4, atol=max(1e-6, 1e-5 * scale),
                                            msg=lambda m: f"rank {rank} step {step} {name}: {m}")
             for name, weight in a["weights"].items():  # the weights after the step, which step 2 starts from
                 torch.testing.assert_close(b["weights"][name], weight, rtol=1e-5, atol=1e-7,

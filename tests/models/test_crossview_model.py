@@ -33,11 +33,12 @@ def forced_mask(head, value: float):
     return head.to_mask.register_forward_hook(lambda module, args, out: torch.full_like(out, value))
 
 
-def msae_by_hand(head, taps):
-    """MSAE head written out step by step from the paper's description, with the head's own weights."""
+def msae_by_hand(head, taps, activation=F.relu):
+    """MSAE head written out step by step from the paper's description, with the head's own weights; eq. 3's
+    branches end in `activation` (the identity: eq. 3 as written)."""
     size = taps[-1].shape[-2:]
     x = torch.cat([F.adaptive_avg_pool2d(t, size) for t in taps], dim=1)
-    multi = torch.cat([F.relu(F.conv2d(x, c.weight, c.bias, padding=c.kernel_size[0] // 2)) for c in head.scales],
+    multi = torch.cat([activation(F.conv2d(x, c.weight, c.bias, padding=c.kernel_size[0] // 2)) for c in head.scales],
                       dim=1)
     assert [c.kernel_size[0] for c in head.scales] == [3, 5, 7]  # eq. 3: three receptive fields
     mask = torch.sigmoid(F.conv2d(multi, head.to_mask.weight, head.to_mask.bias))
@@ -88,17 +89,72 @@ def test_attention_mask_reweights_the_features():
 
 
 @pytest.mark.parametrize("head", [MSAEHead, PlainHead])
-def test_head_defaults_are_the_configs(head):
-    """The modules' defaults are the paper head's (conf/head/msae.yaml, fc.yaml)."""
-    import yaml
+def test_head_defaults_are_the_configs(head, tmp_path):
+    """The modules' sizes are the paper head's as composed (head=msae, head=fc); the branches' ReLU is the module's
+    default (geoloc's choice, which checkpoints without the key were trained with), which the CPU head keeps and
+    the paper's head drops (eq. 3)."""
+    from conftest import compose_train
 
-    from conftest import CONF
-
+    name = "msae" if head is MSAEHead else "fc"
     built = head([4, 4, 4], dim=8)
-    cfg = yaml.safe_load((CONF / "head" / ("msae.yaml" if head is MSAEHead else "fc.yaml")).read_text())
-    assert built.descriptor.proj.out_channels == cfg["proj_channels"] and built.descriptor.pool == cfg["pool"]
+    cfg = compose_train([f"head={name}", f"run_dir={tmp_path}"]).head
+    assert built.descriptor.proj.out_channels == cfg.proj_channels and built.descriptor.pool == cfg.pool
     if head is MSAEHead:
-        assert built.scales[0].out_channels == cfg["scale_channels"]
+        assert built.scales[0].out_channels == cfg.scale_channels
+        assert built.scale_activation == "relu" and cfg.scale_activation == "none"
+        assert compose_train([f"run_dir={tmp_path}"]).head.scale_activation == "relu"  # the CPU default: msae_cpu
+
+
+def test_eq3_as_written_drops_the_branch_activation():
+    """With the same weights, "none" is eq. 3 (s = U_p k_p(d) + c, no activation) and "relu" is not: the masks
+    differ, each as written out by hand."""
+    torch.manual_seed(0)
+    relu = MSAEHead([4, 6, 6], dim=16, scale_channels=5, proj_channels=3, pool=2)
+    plain = MSAEHead([4, 6, 6], dim=16, scale_channels=5, proj_channels=3, pool=2, scale_activation="none")
+    plain.load_state_dict(relu.state_dict())  # the option adds no weights
+    taps = [torch.randn(2, 4, 16, 16), torch.randn(2, 6, 8, 8), torch.randn(2, 6, 4, 4)]
+    (d_relu, m_relu), (d_plain, m_plain) = relu(taps, return_attention=True), plain(taps, return_attention=True)
+    assert (m_relu - m_plain).abs().max() > 1e-3
+    expected_desc, expected_mask = msae_by_hand(plain, taps, activation=lambda x: x)
+    torch.testing.assert_close(m_plain, expected_mask)
+    torch.testing.assert_close(d_plain, expected_desc)
+    with pytest.raises(ValueError, match=r"scale_activation must be one of \('relu', 'none'\)"):
+        MSAEHead([4], dim=8, scale_activation="gelu")
+
+
+@pytest.mark.parametrize("head", [
+    {"name": "msae", "scale_channels": 4, "proj_channels": 3, "pool": 2},
+    {"name": "msae", "scale_channels": 4, "proj_channels": 3, "pool": 2, "scale_activation": "none"},
+    {"name": "fc", "proj_channels": 3, "pool": 2},
+    {"name": "gap"},
+    {"name": "mean_max", "module": "tests/plugins/mean_max.py"},
+])
+def test_branch_features_give_the_same_descriptor_with_its_maps(head):
+    """features(x) is forward(x) bit for bit, with the backbone's maps and the head's map before pooling."""
+    from conftest import REPO
+    from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
+
+    if "module" in head:
+        head = {**head, "module": str(REPO / head["module"])}
+    torch.manual_seed(0)
+    backbone = {"name": "vgg16", "width": 0.0625, "pretrained": False, "batchnorm": False}
+    model = CrossViewModel(backbone, head, CrossViewModelConfig(dim=8)).eval()
+    query, reference = torch.randn(2, 3, 32, 32), torch.randn(2, 3, 32, 32)
+    q, r = model.features(query, reference)
+    expected = model(query, reference)
+    assert torch.equal(q.descriptor, expected[0]) and torch.equal(r.descriptor, expected[1])
+    maps = model.query.trunk(query)
+    assert len(q.maps) == len(maps) and all(torch.equal(a, b) for a, b in zip(q.maps, maps))
+    if head["name"] == "mean_max":  # a head without features(): the descriptor and the maps, no head map
+        assert q.head_map is None and q.attention is None
+        return
+    h, w = maps[-1].shape[-2:]
+    channels = {"msae": 3, "fc": 3, "gap": maps[-1].shape[1]}[head["name"]]
+    assert q.head_map.shape == (2, channels, h, w)
+    if head["name"] == "msae":
+        assert torch.equal(q.attention, model.query(query, return_attention=True)[1])
+    else:
+        assert q.attention is None
 
 
 def test_plain_head_codes_conv5_3_alone():

@@ -1,5 +1,6 @@
 """`python export.py ckpt=PATH format=onnx`: a cross-view checkpoint's two encoders as ONNX files with a dynamic
-batch size, and `encoders.json` beside them saying what each file expects (geoloc/apps/export/input_spec.py).
+batch size, and `encoders.json` beside them saying what each file expects (CrossViewEncoder.input_spec: the
+preprocessing of the query view the checkpoint records).
 
 out/query.onnx       the query (ground-view) branch: B×3×Hq×Wq -> B×dim, L2-normalised
 out/reference.onnx   the reference (aerial) branch:  B×3×Hr×Wr -> B×dim, L2-normalised
@@ -22,8 +23,7 @@ import torch
 from omegaconf import DictConfig
 
 from geoloc.config import ConfigError
-from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
-from geoloc.apps.export import input_spec
+from geoloc.tasks.crossview import CrossViewEncoder
 
 FORMATS = ("onnx",)
 FILES = {"query": "query.onnx", "reference": "reference.onnx"}
@@ -46,41 +46,37 @@ def export(cfg: DictConfig) -> dict:
     out = Path(cfg.out) if cfg.get("out") else default_out(ckpt)
     if not cfg.get("overwrite", False):
         refuse_existing(out)
-    from geoloc.tasks.crossview.run import load_checkpoint
-
-    task, stored, state = load_checkpoint(ckpt, "export.py")
-    data_cfg = parse_dataset(stored.dataset)[0]
-    view = input_spec.query_view_of(data_cfg.name, cfg.get("query_view"))
+    encoder = CrossViewEncoder.load(ckpt, "export.py", device="cpu")
     # the exporter's graph passes log each step at INFO, which Hydra's job logging would print
     for name in ("onnxscript", "onnx_ir"):
         logging.getLogger(name).setLevel(logging.WARNING)
     started = time.perf_counter()
-    spec = export_encoders(task.model.eval(), data_cfg, view, out, opset=cfg.get("opset"))
-    spec["source"] = {"ckpt": str(ckpt), "epoch": state.get("epoch"), "dataset": data_cfg.name}
+    spec = export_encoders(encoder, out, query_view=cfg.get("query_view"), opset=cfg.get("opset"))
+    spec["source"] = {"ckpt": str(ckpt), "epoch": encoder.epoch, "dataset": encoder.data.name}
     (out / SPEC_FILE).write_text(json.dumps(spec, indent=2) + "\n")
     sizes = ", ".join(f"{f} {(out / f).stat().st_size / 1e6:.1f} MB" for f in FILES.values())
     print(f"exported in {time.perf_counter() - started:.1f} s to {out}: {sizes}, {SPEC_FILE}")
     return spec
 
 
-def export_encoders(model: torch.nn.Module, data_cfg: CrossViewDataConfig, query_view: str, out: Path,
+def export_encoders(encoder: CrossViewEncoder, out: Path, query_view: str | None = None,
                     opset: int | None = None) -> dict:
-    """Write query.onnx and reference.onnx for `model` (a CrossViewModel in eval mode) into `out`; return the
-    spec of both. Files are written to a temp folder inside `out` and moved in at the end: a failed export leaves
-    no partial file behind."""
-    query_encoder, reference_encoder = model.encoders(aerial_queries=False)
-    branches = {"query": (query_encoder, f"ground ({query_view})", input_spec.query_input(data_cfg, query_view)),
-                "reference": (reference_encoder, "aerial", input_spec.reference_input(data_cfg))}
+    """Write query.onnx and reference.onnx of `encoder` into `out`; return the spec of both. query_view: what
+    query.onnx is described as taking (None or "auto": the checkpoint's). Files are written to a temp folder inside
+    `out` and moved in at the end: a failed export leaves no partial file behind."""
+    inputs = encoder.input_spec(query_view)
+    view = inputs["query_view"]
+    branches = {"query": (f"ground ({view})", inputs["query"]), "reference": ("aerial", inputs["reference"])}
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".export-", dir=out))
     try:
         spec = {}
-        for name, (branch, view, (hw, geometry)) in branches.items():
+        for name, (described, (hw, geometry)) in branches.items():
+            branch = encoder.branches[name]
             example = torch.randn(2, 3, *hw, generator=torch.Generator().manual_seed(0))
             used_opset = export_branch(branch, example, tmp / FILES[name], opset)
-            entry = input_spec.branch_entry(FILES[name], view, hw, geometry, model_dim(branch, example),
-                                            INPUT_NAME, OUTPUT_NAME)
+            entry = branch_entry(FILES[name], described, hw, geometry, model_dim(branch, example))
             entry["checked_against_torch"] = checked(branch, tmp / FILES[name], example)
             spec[name] = entry
         for path in tmp.iterdir():
@@ -91,16 +87,48 @@ def export_encoders(model: torch.nn.Module, data_cfg: CrossViewDataConfig, query
             shutil.rmtree(out, ignore_errors=True)
         raise
     tmp.rmdir()
+    data = encoder.data
     return {"format": "geoloc cross-view encoders, ONNX", "opset": used_opset,
             "exporter": f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
-            "dataset": {"name": data_cfg.name, "alignment": data_cfg.alignment, "aerial_size": data_cfg.aerial_size,
-                        "pano_size": list(data_cfg.pano_size)},
-            "shared_weights": bool(getattr(model, "shared", False)),
+            "dataset": {"name": data.name, "alignment": data.alignment, "aerial_size": data.aerial_size,
+                        "pano_size": list(data.pano_size)},
+            "shared_weights": bool(getattr(encoder.model, "shared", False)),
+            **queries_entry(encoder, view),
             "usage": ("each image goes through its own view's file: ground images (street panoramas, drone photos) "
                       "through query.onnx, aerial images through reference.onnx; rank references by the dot "
                       "product of the descriptors. For aerial queries (University-1652 satellite -> drone) the "
                       "queries go through reference.onnx and the drone gallery through query.onnx."),
-            "normalisation": input_spec.normalisation(), **spec}
+            "normalisation": inputs["normalisation"], **spec}
+
+
+def queries_entry(encoder: CrossViewEncoder, ground_view: str) -> dict:
+    """{"queries": the view of the queries the checkpoint was validated on, the file they go through, and its
+    gallery's}: an aerial view (University-1652 satellite -> drone) goes through reference.onnx and its gallery of
+    ground images through query.onnx. Empty when neither the checkpoint nor its dataset can say (an old checkpoint
+    exported with query_view= given, away from its data)."""
+    try:
+        view = encoder.query_views["val"]
+    except ConfigError:
+        return {}
+    if view == "aerial":
+        return {"queries": {"view": view, "file": FILES["reference"],
+                            "gallery": {"view": ground_view, "file": FILES["query"]}}}
+    return {"queries": {"view": view, "file": FILES["query"],
+                        "gallery": {"view": "aerial", "file": FILES["reference"]}}}
+
+
+def branch_entry(file: str, view: str, hw: tuple[int, int], geometry: list[str], dim: int) -> dict:
+    """One file's JSON entry."""
+    return {
+        "file": file,
+        "view": view,
+        "input": {"name": INPUT_NAME, "shape": ["batch", 3, *hw], "dtype": "float32", "layout": "NCHW"},
+        "preprocessing": {"steps": ["decode as RGB (OpenCV reads BGR: convert it)", *geometry,
+                                    "normalise: see normalisation"]},
+        "output": {"name": OUTPUT_NAME, "shape": ["batch", dim], "dtype": "float32",
+                   "l2_normalised": True,
+                   "similarity": "dot product (descriptors are unit length: squared distance = 2 - 2 a.b)"},
+    }
 
 
 def export_branch(branch: torch.nn.Module, example: torch.Tensor, path: Path, opset: int | None) -> int:

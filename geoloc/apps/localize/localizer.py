@@ -18,40 +18,35 @@ import torch
 
 from geoloc.config import ConfigError
 from geoloc.data.io import read_rgb
-from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.data.geo import distance_m
-from geoloc.tasks.crossview.heading import query_candidates, query_inputs
-from geoloc.tasks.crossview.views import check_fov
 from geoloc.data.relevance import Relevance
-from geoloc.engine import checkpoint
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview.places import read_places
-
+from geoloc.tasks.crossview import CrossViewEncoder, LocalizationResult, read_places
 
 
 class Localizer:
-    """A cross-view checkpoint and a saved gallery, loaded once; `localize(image)` answers one image.
+    """A cross-view checkpoint (its CrossViewEncoder) and a saved gallery, loaded once; `localize(image)` answers
+    one image with a LocalizationResult.
 
     `localize` only reads the model and the index, so concurrent calls are safe; on a CPU they gain nothing from
     running at once (the service serialises them)."""
 
-    def __init__(self, task, data_cfg, index: GalleryIndex, places, info: dict, device: torch.device,
+    def __init__(self, encoder: CrossViewEncoder, index: GalleryIndex, places, info: dict,
                  heading_steps: int | None = None):
-        self.task, self.data_cfg, self.index, self.places, self.meta = task, data_cfg, index, places, info
+        self.encoder, self.index, self.places, self.meta = encoder, index, places, info
         # candidate headings of the search: as asked, else as the checkpoint's dataset config says
-        self.device, self.heading_steps = device, int(heading_steps or data_cfg.heading_steps)
+        self.device, self.heading_steps = encoder.device, int(heading_steps or encoder.data.heading_steps)
         self.view = info.get("query_view", "panorama")
         if self.view not in ("panorama", "sphere"):
             raise ConfigError(f"the gallery was built from {info.get('split')}, whose queries are {self.view} "
                               "images; localize takes street panoramas or limited-FoV street photos")
-        self.encoder = task.model.encoders(False)[0]
 
     @classmethod
-    def load(cls, ckpt, gallery, device: str = "auto", heading_steps: int | None = None) -> "Localizer":
-        from geoloc.tasks.crossview.run import load_checkpoint
-
-        task, stored, _ = load_checkpoint(ckpt, "localize")
+    def load(cls, ckpt, gallery, device: str | None = None, heading_steps: int | None = None) -> "Localizer":
+        """device: None or "auto" (the GPU when there is one), "cpu", "cuda", "cuda:N"; heading_steps: None takes
+        the checkpoint's dataset.heading_steps."""
+        encoder = CrossViewEncoder.load(ckpt, "localize", device)
         folder = Path(gallery)
         if not (folder / "gallery.json").is_file():
             raise FileNotFoundError(f"{folder} holds no saved gallery (gallery.json). Build one from the split "
@@ -59,17 +54,12 @@ class Localizer:
                                     f"[dataset=... dataset.root=DIR] gallery.save={folder}")
         info = json.loads((folder / "gallery.json").read_text())
         places = read_places(folder, info)
-        fingerprint = checkpoint.weights_fingerprint(task.model)
-        if info.get("model_fingerprint") != fingerprint:
+        if info.get("model_fingerprint") != encoder.fingerprint:
             raise ConfigError(f"the gallery in {folder} was built with other weights ({info.get('ckpt')}) than "
                               f"{ckpt}: its descriptors would not match. Rebuild it with python evaluate.py "
                               f"ckpt={ckpt} gallery.save=NEW_DIR")
-        dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
-                           "cpu" if device == "auto" else device)
-        task.to(dev).eval()
-        index = GalleryIndex.load(folder / "gallery.pt", device=dev)
-        return cls(task, parse_dataset(stored.dataset)[0], index, places, {**info, "ckpt_loaded": str(ckpt)}, dev,
-                   heading_steps)
+        index = GalleryIndex.load(folder / "gallery.pt", device=encoder.device)
+        return cls(encoder, index, places, {**info, "ckpt_loaded": str(ckpt)}, heading_steps)
 
     def info(self) -> dict:
         """What /health and the JSON output say about the loaded model and gallery."""
@@ -79,7 +69,7 @@ class Localizer:
 
     @torch.no_grad()
     def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | None = None,
-                 name: str | None = None, path: Path | None = None) -> dict:
+                 name: str | None = None, path: Path | None = None) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
         photo covering `fov` degrees of bearing, horizon band only. heading: its bearing when known (degrees
         clockwise from north); None searches `heading_steps` candidates. path: the file, to find the image among
@@ -87,29 +77,18 @@ class Localizer:
         if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be an H×W×3 uint8 RGB array, got {getattr(image, 'shape', type(image))} "
                              f"{getattr(image, 'dtype', '')}")
-        fov = check_fov(fov, "fov")
         if int(topk) != topk or topk < 1:
             raise ValueError(f"topk must be an int >= 1, got {topk!r}")
-        street = image
-        if self.view == "sphere" and fov == 360.0:  # a full sphere: its horizon band, as the split's queries
-            street = street[street.shape[0] // 4: 3 * street.shape[0] // 4]
-        if heading is None:
-            inputs, headings = query_candidates(street, self.data_cfg, self.view, fov, self.heading_steps)
-        else:
-            headings = np.array([float(heading) % 360.0])
-            inputs = query_inputs(street, self.data_cfg, self.view, fov, headings)
-        descriptors = self.encoder(inputs.to(self.device)).float()
+        inputs, headings = self.encoder.street_inputs(image, fov, heading, self.heading_steps, view=self.view)
+        descriptors = self.encoder.encode_street(inputs)
         # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
         scores, rows = self.index.search(descriptors, min(len(self.index), int(topk)))
         best = self._merge(scores, rows, headings)[: int(topk)]
-        answer = {"image": name or (str(path) if path else None), "fov_deg": fov,
-                  "heading_deg": best[0]["heading_deg"], "heading_source": "search" if heading is None else "given",
-                  "position": self._position(best[0]["row"]),
-                  "topk": best, "positions": self.places.kind}
-        truth = self._truth(path, best)
-        if truth is not None:
-            answer["truth"] = truth
-        return answer
+        return LocalizationResult(image=name or (str(path) if path else None), fov_deg=float(fov),
+                                  heading_deg=best[0]["heading_deg"],
+                                  heading_source="search" if heading is None else "given",
+                                  position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,
+                                  truth=self._truth(path, best))
 
     def _merge(self, scores: torch.Tensor, rows: torch.Tensor, headings: np.ndarray) -> list[dict]:
         """Each gallery row's best score over the K candidates (K×k lists), and that candidate's heading; best

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from geoloc.data.io import read_rgb  # noqa: E402
 from geoloc.data.geo import latlon_to_offset  # noqa: E402
-from geoloc.tasks.crossview.places import POSITION_KEYS  # noqa: E402
+from geoloc.tasks.crossview import POSITION_KEYS, LocalizationResult  # noqa: E402
 
 MAP_POINTS = 20_000  # grey gallery points drawn at most (a 1M gallery is subsampled)
 NEIGHBOURHOOD_M = 5_000.0  # the map shows candidates this close to its centre
@@ -43,11 +43,11 @@ def _metres(kind: str, centre: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.asarray(points, np.float64) - centre
 
 
-def _candidate_map(ax, answer: dict, places) -> None:
+def _candidate_map(ax, answer: LocalizationResult, places) -> None:
     """The neighbourhood of the true position (or of the top-1 when the truth is unknown), in metres: the gallery's
     references there, the top-k that fall in it, the true position; candidates elsewhere are counted in the title
     (a same-area VIGOR gallery spans four cities)."""
-    kind, truth, topk = places.kind, answer.get("truth") or {}, answer["topk"]
+    kind, truth, topk = places.kind, answer.truth or {}, answer.topk
     centre = _array(kind, truth["position"]) if "position" in truth else _array(kind, topk[0])
     hits = np.stack([_metres(kind, centre, _array(kind, hit)) for hit in topk])
     near = np.linalg.norm(hits, axis=1) <= NEIGHBOURHOOD_M
@@ -78,19 +78,18 @@ def _candidate_map(ax, answer: dict, places) -> None:
     ax.legend(fontsize=7, loc="upper right")
 
 
-def localization_figure(answer: dict, image: np.ndarray, places, out: Path) -> Path:
+def localization_figure(answer: LocalizationResult, image: np.ndarray, places, out: Path) -> Path:
     """Write `out` (PNG) for a Localizer answer about `image` (H×W×3 uint8)."""
-    topk = answer["topk"]
-    truth = answer.get("truth") or {}
+    topk = answer.topk
+    truth = answer.truth or {}
     has_map = places.kind is not None
     cols = len(topk) + (2 if has_map else 0)
     fig = plt.figure(figsize=(2.2 * cols + 2, 5.2))
     grid = fig.add_gridspec(2, cols, height_ratios=[1.1, 1])
     ax = fig.add_subplot(grid[0, : cols - (2 if has_map else 0)])
     ax.imshow(image)
-    heading = f"heading {answer['heading_deg']:.0f}° ({answer['heading_source']})"
-    ax.set_title(f"{Path(str(answer.get('image') or 'query')).name}  fov {answer['fov_deg']:.0f}°  {heading}",
-                 fontsize=9)
+    heading = f"heading {answer.heading_deg:.0f}° ({answer.heading_source})"
+    ax.set_title(f"{Path(str(answer.image or 'query')).name}  fov {answer.fov_deg:.0f}°  {heading}", fontsize=9)
     ax.axis("off")
     for i, hit in enumerate(topk):
         ax = fig.add_subplot(grid[1, i])

@@ -45,6 +45,7 @@ def images_of(target: Path) -> list[Path]:
 
 
 def localize(section: DictConfig) -> list[dict]:
+    """Each image's answer as written to localize.jsonl (LocalizationResult.to_json)."""
     cfg = checked(section, LocalizeConfig, "localize.py")
     images = images_of(Path(cfg.image))
     localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
@@ -54,11 +55,12 @@ def localize(section: DictConfig) -> list[dict]:
     with open(out / "localize.jsonl", "a") as lines:
         for path in images:
             image = read_street(path)
-            answer = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
+            result = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
             if cfg.picture:
                 from geoloc.apps.localize.picture import localization_figure
 
-                answer["picture"] = str(localization_figure(answer, image, localizer.places, out / f"{path.stem}.png"))
+                result.picture = str(localization_figure(result, image, localizer.places, out / f"{path.stem}.png"))
+            answer = result.to_json()
             text = json.dumps(answer)
             print(text)
             lines.write(text + "\n")

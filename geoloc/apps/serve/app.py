@@ -6,11 +6,11 @@
 GET /health -> {"status": "ok", **localizer.info()}
 POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama),
 `topk` (>= 1, default 5) and `heading` (degrees clockwise from north when known; default: searched) as form fields
-or query parameters -> localizer.localize(...)'s dict, as JSON.
+or query parameters -> localizer.localize(...)'s answer, as JSON.
 
 `localizer` is anything with `localize(image, fov=, topk=, name=)` (image: H×W×3 uint8 RGB; returns a
-JSON-serialisable dict; it gets `heading=` only when the request gives one) and `info()` (a JSON-serialisable dict),
-e.g. geoloc.apps.localize.Localizer.
+LocalizationResult, whose to_json() is the answer, or a JSON-serialisable dict; it gets `heading=` only when the
+request gives one) and `info()` (a JSON-serialisable dict), e.g. geoloc.apps.localize.Localizer.
 Bad input gets a 4xx whose `detail` says what is wrong and what to do; a failure inside the localizer gets a 500
 with its message. Neither stops the server.
 """
@@ -76,7 +76,7 @@ def create_app(localizer, max_pixels: int = MAX_PIXELS, max_bytes: int = MAX_BYT
                 raise HTTPException(err.status, str(err)) from None
             try:
                 result = localizer.localize(rgb, fov=fov, topk=topk, name=image.filename, **known)
-                body = json.dumps(result, allow_nan=False)
+                body = json.dumps(result.to_json() if hasattr(result, "to_json") else result, allow_nan=False)
             except Exception as err:  # the server answers and stays up; the traceback goes to its log
                 log.exception("localize failed for %r", image.filename)
                 raise HTTPException(500, f"localization failed: {type(err).__name__}: {err}. The server is still "

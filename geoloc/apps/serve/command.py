@@ -9,13 +9,13 @@ from omegaconf import MISSING
 
 from geoloc.apps.serve.app import MAX_BYTES, MAX_PIXELS, create_app
 
-USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=cpu]
+USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=auto]
                     [heading_steps=K] [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
 
   ckpt        a checkpoint written by train.py (best.pt)
   gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
   host, port  where to listen (127.0.0.1: this machine only; 0.0.0.0: every interface)
-  device      cpu, cuda, cuda:1 ...
+  device      auto (the GPU when there is one, else the CPU), cpu, cuda, cuda:1 ...
   heading_steps  candidate headings tried when a request gives no heading (default: the checkpoint's
                  dataset.heading_steps, 36 unless it was trained otherwise: every 10 degrees)
   max_pixels  a larger image gets 413, refused from its header before it is decoded
@@ -30,7 +30,7 @@ class ServeConfig:
     gallery: str = MISSING
     host: str = "127.0.0.1"
     port: int = 8000
-    device: str = "cpu"
+    device: str | None = None  # None: the encoder's rule (auto)
     heading_steps: int | None = None  # None: the checkpoint's dataset.heading_steps
     max_pixels: int = MAX_PIXELS
     max_bytes: int = MAX_BYTES

@@ -1,10 +1,17 @@
 """Cross-view geo-localization: street (or drone) queries against aerial references. See docs/architecture.md.
 
 `train(cfg, run_dir)` trains and validates; `evaluate(cfg, state)` scores a checkpoint's state on a split.
-RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc/launch/resume.py).
+RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc/launch/resume.py). The apps
+(localize.py, `geoloc serve`, export.py) use what this package exports and nothing deeper: `CrossViewEncoder` (a
+checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and the places of a
+saved gallery (`read_places`, `POSITION_KEYS`).
 """
 
 from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config
+from geoloc.tasks.crossview.encoder import CrossViewEncoder
+from geoloc.tasks.crossview.localization import LocalizationResult
+from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
 from geoloc.tasks.crossview.run import evaluate, train
 
-__all__ = ["RESUME_MAY_CHANGE", "canonical_config", "evaluate", "train"]
+__all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE",
+           "canonical_config", "evaluate", "read_places", "train"]

@@ -12,7 +12,7 @@ from torch.utils.data import Dataset
 from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.data.io import read_rgb
-from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.data.retrieval_split import PER_QUERY, PER_REFERENCE, RetrievalSplit
 from geoloc.data.validate import check_files
 from geoloc.engine.sampling import item_rng, split_key
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
@@ -45,15 +45,8 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
 
 def limited(split: RetrievalSplit, n: int) -> RetrievalSplit:
     """The first n queries; a one-to-one split keeps its pairs (the first n references too)."""
-    take = lambda a: None if a is None else a[:n]  # noqa: E731
-    if split.one_to_one:
-        return replace(split, queries=split.queries[:n], references=split.references[:n],
-                       positives=split.positives[:n], query_latlon=take(split.query_latlon),
-                       reference_latlon=take(split.reference_latlon), query_xy=take(split.query_xy),
-                       reference_xy=take(split.reference_xy))
-    return replace(split, queries=split.queries[:n], positives=split.positives[:n],
-                   semi_positives=take(split.semi_positives), query_latlon=take(split.query_latlon),
-                   query_xy=take(split.query_xy), query_labels=take(split.query_labels))
+    cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
+    return replace(split, **{k: None if getattr(split, k) is None else getattr(split, k)[:n] for k in cut})
 
 
 def paths_to_check(split: RetrievalSplit) -> list[Path]:

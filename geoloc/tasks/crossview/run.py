@@ -94,18 +94,6 @@ def score(run: CrossViewEvaluation, task: CrossViewTask) -> dict:
     return metrics
 
 
-def load_checkpoint(ckpt, use: str) -> tuple[CrossViewTask, DictConfig, dict]:
-    """(task with the weights loaded, its config, the checkpoint dict) of a cross-view checkpoint file; another
-    task's checkpoint is refused, naming `use` (what wanted it: export.py, localize)."""
-    state = ckpt_io.load(ckpt)
-    task_name = OmegaConf.select(OmegaConf.create(state.get("config") or "{}"), "task.name") or "crossview"
-    if task_name != "crossview":
-        raise ConfigError(f"ckpt={ckpt} is a task={task_name} checkpoint; {use} takes cross-view checkpoints "
-                          "(task=crossview) only")
-    stored = stored_config(state)
-    return restored_task(state, ckpt, stored), stored, state
-
-
 def stored_config(state: dict) -> DictConfig:
     """A checkpoint's config in today's layout (older layouts upgraded: legacy.py)."""
     stored = OmegaConf.create(state["config"])
@@ -114,7 +102,7 @@ def stored_config(state: dict) -> DictConfig:
 
 def restored_task(state: dict, ckpt, stored: DictConfig) -> CrossViewTask:
     """The task `stored` (the checkpoint's config, stored_config) describes, with the checkpoint's weights, on the
-    CPU. `ckpt` names the file in errors. Used by export and localize."""
+    CPU. `ckpt` names the file in errors. Used by the apps' CrossViewEncoder (encoder.py)."""
     model = checked(stored.model, CrossViewModelConfig, "model")
     return with_weights(build_task(model, parse_components(stored), _max_epochs(stored)), state, ckpt)
 

@@ -3,7 +3,8 @@ and sampler (conf/ groups of the same names).
 
 The paper's method (Li, Tu, Chen, Yu, "Multi-scale attention encoder for street-to-aerial image geo-localization",
 CAAI TIT 2023) is backbone=vgg16 head=msae loss=gms_triplet optim=adam: Adam lr 1e-4 (betas 0.9/0.999), StepLR /10
-every 80 epochs, 100 epochs, batch 64, alpha 10, queue 1,024. Sample4Geo's family is backbone=timm model.shared=true
+every 80 epochs, 100 epochs, batch 64, alpha 10, MSAE's eq. 3 without an activation; the GMS queue's 1,024 entries
+are geoloc's choice (the paper gives no length). Sample4Geo's family is backbone=timm model.shared=true
 head=gap loss=infonce optim=adamw with a hard-sample sampler (conf/experiment/sample4geo.yaml).
 """
 
@@ -22,6 +23,11 @@ from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_met
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
+# What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
+# the batch as the data module gives it and each branch's BranchFeatures (models/crossview.py). They are this
+# rank's, where the descriptors are gathered over ranks.
+LOSS_EXTRAS = ("batch", "query_features", "reference_features")
+
 
 class CrossViewTask(Task):
     monitor = "R@1"
@@ -37,12 +43,20 @@ class CrossViewTask(Task):
         self.loss = registry.build("loss", loss, dim=model.dim)
         if not callable(self.loss):
             raise TypeError(f"loss {loss.get('name')!r} did not build a callable (docs/extending.md)")
+        self.loss_extras = tuple(registry.accepted(getattr(self.loss, "forward", self.loss),
+                                                   dict.fromkeys(LOSS_EXTRAS)))
         # what is built later fails here, before any data is read: an unknown name or argument
         registry.check("optimizer", optim, runtime=("params", "max_epochs"))
         registry.check("sampler", self.sampler_section,
                        runtime=("labels", "batch_size", "seed", "rank", "world_size", "neighbours"))
         self.sampler = None
         self.split = None  # the RetrievalSplit validation scores (validate_on): its relevance and views
+        self.query_views: dict[str, str] = {}  # {"train": ..., "val": ...}: RetrievalSplit.query_view of each
+
+    def checkpoint_info(self) -> dict:
+        """The query views of the splits trained and validated on ("panorama", "sphere", "image", "aerial"), so
+        apps know what the query branch takes (CrossViewEncoder) without guessing from the dataset's name."""
+        return {"query_view": dict(self.query_views)}
 
     # ---- optimisation --------------------------------------------------------------------------------------
     def configure_optimizers(self):
@@ -52,6 +66,7 @@ class CrossViewTask(Task):
         return [opt], [sched] if sched is not None else []
 
     def train_dataloader(self, dataset, batch_size, engine):
+        self.query_views["train"] = dataset.split.query_view
         if self.sampler_section.get("name") == "shuffle":  # the engine's own seeded shuffle
             return engine.loader(dataset, batch_size, train=True)
         self.sampler = registry.build("sampler", self.sampler_section, labels=dataset.labels, batch_size=batch_size,
@@ -73,13 +88,20 @@ class CrossViewTask(Task):
             self.sampler.set_descriptors(desc["query"], desc["reference"])
 
     def training_step(self, batch, engine):
-        query, reference = self.model(batch["query"], batch["reference"])
+        extras = {}
+        if {"query_features", "reference_features"} & set(self.loss_extras):  # the maps only when asked for
+            extras["query_features"], extras["reference_features"] = self.model.features(batch["query"],
+                                                                                         batch["reference"])
+            query, reference = extras["query_features"].descriptor, extras["reference_features"].descriptor
+        else:
+            query, reference = self.model(batch["query"], batch["reference"])
         query, reference = query.float(), reference.float()
         # the loss sees the global batch; gradients flow back to every rank's slice
         query_all = dist.all_gather_with_grad(query)
         reference_all = dist.all_gather_with_grad(reference)
         labels_all = dist.all_gather_nograd(batch["label"])
-        out = self.loss(query_all, reference_all, labels_all)
+        extras["batch"] = batch
+        out = self.loss(query_all, reference_all, labels_all, **{k: extras[k] for k in self.loss_extras})
         return out if isinstance(out, dict) else {"loss": out}
 
     def on_train_batch_end(self, outputs):
@@ -91,6 +113,7 @@ class CrossViewTask(Task):
         """The RetrievalSplit that validation scores: which references are relevant to which query, and which
         branch encodes its queries. The runner sets it once the split is read."""
         self.split = split
+        self.query_views["val"] = split.query_view
 
     def val_dataloaders(self, data, batch_size, engine):
         """One-to-one splits: one loader of pairs. Others: the queries and the gallery apart."""

@@ -33,10 +33,13 @@ IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 
 def load_view(path: Path, view: str) -> np.ndarray:
     street = read_rgb(path)
-    if view == "sphere":  # full sphere → the horizon band, as SAFA does for CVACT (rows 208:624 of 832)
-        h = street.shape[0]
-        street = street[h // 4 : 3 * h // 4]
-    return street
+    return horizon_band(street) if view == "sphere" else street
+
+
+def horizon_band(sphere: np.ndarray) -> np.ndarray:
+    """A full-sphere panorama's horizon band, rows H/4 to 3H/4, as SAFA cuts CVACT's (rows 208:624 of 832)."""
+    h = sphere.shape[0]
+    return sphere[h // 4 : 3 * h // 4]
 
 
 def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,

@@ -70,7 +70,7 @@ def test_vigor_trains_and_evaluates_in_both_settings(vigor_root, tmp_path):
 
     query = json.loads((folder / "queries.jsonl").read_text().splitlines()[0])
     answer = Localizer.load(ckpt, folder, device="cpu").localize(
-        read_street(vigor_root / query["path"]), topk=3, heading=0, path=vigor_root / query["path"])
+        read_street(vigor_root / query["path"]), topk=3, heading=0, path=vigor_root / query["path"]).to_json()
     top1 = answer["topk"][0]
     assert answer["truth"]["row"] == query["positive"] and answer["positions"] == "latlon"
     assert answer["truth"]["error_m"] == pytest.approx(
@@ -147,13 +147,15 @@ def test_a_checkpoint_of_the_old_layout_still_evaluates(finished_run, tmp_path):
     layout and score the same."""
     root, finished = finished_run
     state = ckpt_io.load(finished / "best.pt")
-    new = evaluate(tmp_path, f"ckpt={finished / 'best.pt'}", f"dataset.root={root}")
     cfg = OmegaConf.create(state["config"])
+    cfg.head.scale_activation = "relu"  # the old layout's MSAE, which had no such key, ends its branches in a ReLU
+    torch.save({**state, "config": OmegaConf.to_yaml(cfg)}, tmp_path / "relu.pt")
+    new = evaluate(tmp_path, f"ckpt={tmp_path / 'relu.pt'}", f"dataset.root={root}")
     old = OmegaConf.to_container(cfg)
     backbone, head = old.pop("backbone"), old.pop("head")
     old["model"] = {"name": "msae_vgg16", **{k: v for k, v in backbone.items() if k != "name"},
                     "msae": head["name"] == "msae", "dim": old["model"]["dim"],
-                    **{k: v for k, v in head.items() if k != "name"}}
+                    **{k: v for k, v in head.items() if k not in ("name", "scale_activation")}}
     old.pop("sampler")
     old_state = {**state, "config": OmegaConf.to_yaml(OmegaConf.create(old)),
                  "task": {k.replace("loss.queue.", "queue."): v for k, v in state["task"].items()}}

@@ -182,7 +182,7 @@ def test_every_path_gives_the_same_numbers(runs, case, tmp_path, monkeypatch):
         scores = (query @ reference.T).numpy()
         ranks = rank(query, reference, split.relevance).ranks
         for i, path in enumerate(split.queries):
-            answer = localizer.localize(read_street(path), topk=5, heading=0, path=path)
+            answer = localizer.localize(read_street(path), topk=5, heading=0, path=path).to_json()
             got_rows = [t["row"] for t in answer["topk"]]
             assert_same_top_k(got_rows, [t["score"] for t in answer["topk"]], scores[i], 5)
             assert answer["truth"]["row"] == split.positives[i]

@@ -1,7 +1,8 @@
 """Each paper experiment holds the paper's numbers, passes the runners' schemas, and reaches the code that uses it.
 
 MSAE (Li et al.): Adam 1e-4, betas 0.9/0.999, StepLR /10 at epoch 80, 100 epochs, batch 64, IPT at 288x288, alpha 10,
-GMS queue 1024, random rotation of the IPT query and no colour jitter (the +-10 degree range is geoloc's choice).
+eq. 3 with no activation, random rotation of the IPT query and no colour jitter. geoloc's choices where the paper is
+silent: the +-10 degree range, and the GMS queue's length (1024).
 MMDIP (Wu, Wang, Sun): ERFNet Adam 2e-3 batch 1; SSGGNet lrs 1e-4 segmentation / 2e-3 G / 4e-3 D, batch 4; eq. 2's
 unit generator loss weights; VGG16 ImageNet perceptual loss; SPM L = 2; alpha 0.5; 512x512 everywhere.
 """
@@ -54,8 +55,10 @@ def test_crossview_paper_config_holds_the_msae_numbers(experiment, tmp_path):
     b, h = c["backbone"], c["head"]
     assert (b.name, b.width, b.pretrained, b.batchnorm) == ("vgg16", 1.0, True, False)
     assert (h.name, h.scale_channels, h.proj_channels, h.pool) == ("msae", 64, 64, 8)
+    assert h.scale_activation == "none"  # eq. 3 as written
     assert (m.dim, m.shared) == (4096, False) and c["sampler"].name == "shuffle"
-    assert (loss.name, loss.alpha, loss.queue_size, loss.queue_start_epoch) == ("gms_triplet", 10.0, 1024, 0)
+    assert (loss.name, loss.alpha, loss.queue_start_epoch) == ("gms_triplet", 10.0, 0)
+    assert loss.queue_size == 1024  # geoloc's choice: the paper gives no length
     assert (opt.name, opt.lr, tuple(opt.betas), opt.weight_decay) == ("adam", 1e-4, (0.9, 0.999), 0.0)
     assert (opt.step_size, opt.gamma) == (80, 0.1)
     assert c["trainer"].max_epochs == 100

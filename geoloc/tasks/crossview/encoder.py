@@ -1,0 +1,141 @@
+"""A cross-view checkpoint as the apps use it (localize.py, `geoloc serve`, export.py), and all they use of the task.
+
+    encoder = CrossViewEncoder.load(ckpt, use="localize")              # device: auto, cpu, cuda, cuda:N
+    inputs, headings = encoder.street_inputs(image, fov=360.0)          # K candidate headings, or heading=h
+    query = encoder.encode_street(inputs)                              # K × dim, L2-normalised
+    tile = encoder.encode_aerial(encoder.aerial_input(aerial))         # 1 × dim
+    encoder.input_spec()                                               # each branch's input, in words (export)
+
+It holds the network (eval mode, on its device), the dataset transform config the checkpoint was trained with
+(`data`), the query views of the splits it was trained and validated on (recorded in the checkpoint; a checkpoint
+from before the record asks its dataset's reader, never a table of dataset names), and the weights' fingerprint,
+which saved galleries record. The preprocessing is the data module's own (transforms.py, heading.py), so an app's
+inputs are the evaluation's.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc import registry
+from geoloc.config import ConfigError
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.engine.device import resolve_device
+from geoloc.tasks.crossview.data_config import parse_dataset
+from geoloc.tasks.crossview.heading import query_inputs
+from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
+from geoloc.tasks.crossview.transforms import align_reference, horizon_band, to_tensor
+from geoloc.tasks.crossview.views import candidate_headings, check_fov
+
+
+class CrossViewEncoder:
+    """model: the CrossViewModel (eval mode, on `device`); data: its CrossViewDataConfig; config: the checkpoint's
+    whole config (older layouts upgraded); source: the checkpoint file; epoch: the epoch it was saved at."""
+
+    def __init__(self, task, config: DictConfig, state: dict, source, device: torch.device):
+        self.model = task.model.to(device).eval()
+        self.config, (self.data, self._reader) = config, parse_dataset(config.dataset)
+        self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
+        self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
+
+    @classmethod
+    def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":
+        """The encoder of a cross-view checkpoint file; another task's checkpoint is refused, naming `use` (what
+        wanted it: export.py, localize). device: None or "auto" (the GPU when there is one), "cpu", "cuda:N"."""
+        from geoloc.tasks.crossview.run import restored_task, stored_config
+
+        state = ckpt_io.load(ckpt)
+        task_name = OmegaConf.select(OmegaConf.create(state.get("config") or "{}"), "task.name") or "crossview"
+        if task_name != "crossview":
+            raise ConfigError(f"ckpt={ckpt} is a task={task_name} checkpoint; {use} takes cross-view checkpoints "
+                              "(task=crossview) only")
+        config = stored_config(state)
+        return cls(restored_task(state, ckpt, config), config, state, ckpt, resolve_device(device))
+
+    # ---- what it was trained on --------------------------------------------------------------------------------
+    @property
+    def query_views(self) -> dict[str, str]:
+        """{"train": the training split's query view, "val": the validation split's} (RetrievalSplit.query_view).
+        The training pairs' queries are ground images, so "train" is what the query branch takes (panorama, sphere,
+        image); "val" may be "aerial" (University-1652 satellite -> drone: the queries go through the reference
+        branch and the drone gallery through the query branch)."""
+        return {key: self._recorded[key] if key in self._recorded else self._reader_views[key]
+                for key in ("train", "val")}
+
+    @property
+    def query_view(self) -> str:
+        """What the query branch takes: "panorama", "sphere" or "image"."""
+        return self._recorded["train"] if "train" in self._recorded else self._reader_views["train"]
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """The weights' fingerprint (engine/checkpoint.py), as saved galleries record it."""
+        return ckpt_io.weights_fingerprint(self.model)
+
+    @cached_property
+    def _reader_views(self) -> dict[str, str]:
+        """A checkpoint without the record: its dataset's reader says (it reads the split lists, nothing decoded;
+        the embedded synthetic data is rendered into its cache if it is not there, as evaluate.py would)."""
+        data = self.data
+        try:
+            if data.root and not Path(data.root).expanduser().exists():
+                raise FileNotFoundError(f"dataset.root={data.root} does not exist here")
+            return {key: registry.build("dataset", self._reader, root=data.root, split=split).query_view
+                    for key, split in (("train", "train"), ("val", data.val_split))}
+        except (FileNotFoundError, ValueError, ConfigError) as err:
+            raise ConfigError(f"{self.source} does not record the view of its queries (saved before checkpoints did), "
+                              f"and its dataset ({data.name}) cannot be asked: {err}. Say what the query branch takes: "
+                              "query_view=panorama | sphere | image") from err
+
+    # ---- preprocessing -----------------------------------------------------------------------------------------
+    def street_inputs(self, image: np.ndarray, fov: float = 360.0, heading: float | None = None,
+                      steps: int | None = None, view: str | None = None) -> tuple[torch.Tensor, np.ndarray]:
+        """image: H×W×3 uint8 RGB, a street view covering `fov` degrees of bearing (360: a panorama; a full sphere,
+        view "sphere", is cut to its horizon band as the data module cuts it). heading: its bearing when known
+        (degrees clockwise from north); None: the `steps` candidate headings 360·k/steps (default the checkpoint's
+        dataset.heading_steps). view: the images' query view (default the checkpoint's).
+        -> (K×3×H×W query-branch inputs on the CPU, (K,) headings in degrees)."""
+        view = self.query_view if view is None else view
+        fov = check_fov(fov, "fov")
+        street = horizon_band(image) if view == "sphere" and fov == 360.0 else image
+        if heading is None:
+            headings = candidate_headings(steps or self.data.heading_steps)
+        else:
+            headings = np.array([float(heading) % 360.0])
+        return query_inputs(street, self.data, view, fov, headings), headings
+
+    def aerial_input(self, tile: np.ndarray) -> torch.Tensor:
+        """tile: H×W×3 uint8 RGB aerial image -> 1×3×H×W reference-branch input on the CPU."""
+        return to_tensor(align_reference(tile, self.data))[None]
+
+    @torch.no_grad()
+    def encode_street(self, inputs: torch.Tensor) -> torch.Tensor:
+        """B×3×H×W query-branch inputs -> B×dim float32 descriptors on the encoder's device."""
+        return self.model.query(inputs.to(self.device)).float()
+
+    @torch.no_grad()
+    def encode_aerial(self, inputs: torch.Tensor) -> torch.Tensor:
+        """B×3×H×W reference-branch inputs -> B×dim float32 descriptors on the encoder's device."""
+        return self.model.reference(inputs.to(self.device)).float()
+
+    # ---- export ------------------------------------------------------------------------------------------------
+    @property
+    def branches(self) -> dict[str, torch.nn.Module]:
+        """{"query": the ground-view branch, "reference": the aerial branch} (one module when model.shared)."""
+        return {"query": self.model.query, "reference": self.model.reference}
+
+    def input_spec(self, query_view: str | None = None) -> dict:
+        """What each branch takes: {"query": ((H, W), preprocessing steps), "reference": (...), "normalisation":
+        the pixel encoding, "query_view": the ground view the query entry describes (default the checkpoint's)}."""
+        view = check_ground_view(self.query_view if query_view in (None, "auto") else query_view)
+        return {"query": query_input(self.data, view), "reference": reference_input(self.data),
+                "normalisation": normalisation(), "query_view": view}
+
+    def info(self) -> dict:
+        return {"ckpt": str(self.source), "epoch": self.epoch, "dataset": self.data.name,
+                "device": str(self.device)}

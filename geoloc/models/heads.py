@@ -1,5 +1,6 @@
 """The registered heads. A head maps a backbone's multi-scale maps to an L2-normalised B×dim descriptor:
-`head(in_channels=backbone.channels, dim=model.dim, **config)`, forward(maps, return_attention=False)."""
+`head(in_channels=backbone.channels, dim=model.dim, **config)`, forward(maps, return_attention=False). This module
+declares the `head` kind and registers the built-ins."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoloc.models.msae import MSAEHead, PlainHead
-from geoloc.registry import register
+from geoloc.registry import declare, register
+
+declare("head", section="head")
 
 
 @register("head", "msae")

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 from omegaconf import DictConfig, OmegaConf
 
+import geoloc.datasets  # noqa: F401  (declares the dataset kind and registers the built-in readers)
 from geoloc import registry
 from geoloc.config import checked
 from geoloc.tasks.crossview.views import check_fov

@@ -12,13 +12,16 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig
 
+import geoloc.losses  # noqa: F401  (declares the loss kind and registers its built-ins)
 from geoloc import registry
+from geoloc.data import samplers  # noqa: F401  (the sampler kind)
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
 from geoloc.eval import recall_at_k
 from geoloc.eval.descriptors import check_descriptors, guarded_recall
 from geoloc.tasks.crossview.heading import collapsed_heading_metrics, heading_metrics
 from geoloc.eval.retrieval_metrics import collapsed_split_metrics, split_metrics
+from geoloc.models import optim  # noqa: F401  (the optimizer kind)
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
 

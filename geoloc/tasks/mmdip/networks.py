@@ -20,6 +20,8 @@ from geoloc.models.patchgan import PatchGAN
 from geoloc.models.unet import UNet
 from geoloc.tasks.mmdip.config import SegmentationConfig, TranslationConfig
 
+registry.declare("segmenter", section="task.segmentation", name_key="task.segmentation.model")
+
 
 @registry.register("segmenter", "erfnet")
 def erfnet(num_classes: int) -> ERFNet:

@@ -36,7 +36,8 @@ def test_config_errors_are_clear(tmp_path):
                     tmp_path)
     with pytest.raises(ConfigError, match="vocab_sz"):
         mmdip.train(compose_train([*TINY_MMDIP, "+task.vpr.vocab_sz=3", f"run_dir={tmp_path}"]), tmp_path)
-    with pytest.raises(ConfigError, match="dataset=dynamic"):
+    with pytest.raises(ConfigError, match=r"dataset.name='synthetic' is not a known mmdip_dataset; choose one of "
+                                          r"\['carla4', 'dynamic', 'emptycities'"):
         mmdip.train(compose_train(["task=mmdip", "dataset=synthetic", f"run_dir={tmp_path}"]), tmp_path)
     assert compose_train(["task=mmdip", f"run_dir={tmp_path}"]).dataset.name == "dynamic"  # task=mmdip switches
     assert MMDIPConfig().translation.lr_d == 4e-3

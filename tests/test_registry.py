@@ -95,3 +95,10 @@ def test_a_task_is_found_by_name_and_a_config_without_one_is_crossview():
     with pytest.raises(ConfigError, match=r"task.name='mmdp' is not a known task; choose one of \['crossview', "
                                           r"'mmdip'"):
         find_task({"name": "mmdp"})
+
+
+def test_every_kind_is_in_docs_extending():
+    find_task({"name": "mmdip"})  # imports every task, and with them every kind's owner
+    table = (REPO / "docs" / "extending.md").read_text()
+    for kind, declared in registry.kinds().items():
+        assert re.search(rf"^\| `{kind}` \| `{re.escape(declared.section)}", table, re.M), kind

@@ -1,7 +1,11 @@
-"""Reading the configs of checkpoints written before the component registry (geoloc <= 0.1 layout), so
-`evaluate.py` still scores them: `model: {name: msae_vgg16, width, pretrained, batchnorm, msae, dim, ...}` becomes
-`backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}` and `model: {dim}`; the GMS queue's buffers moved
-from `queue.*` to `loss.queue.*`. The weights themselves are unchanged."""
+"""The cross-view checkpoint layouts, and the upgrade from the first to the current one, so `evaluate.py` scores a
+checkpoint of either. The weights themselves are the same in both.
+
+format 1  one network section, `model: {name: msae_vgg16, width, pretrained, batchnorm, msae, dim, ...}`, and the
+          GMS queue's buffers under `queue.*`;
+format 2  registered components: `backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}`, `model: {dim}`,
+          and the queue's buffers under `loss.queue.*`.
+"""
 
 from __future__ import annotations
 

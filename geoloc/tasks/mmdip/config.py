@@ -146,7 +146,7 @@ def task_config(section) -> MMDIPConfig:
             raise ConfigError(f"task.segmentation.{key} is not a key of task.segmentation (its keys are "
                               f"{list(SEGMENTATION_KEYS)}); a segmenter's own keys go under "
                               f"task.segmentation.<segmenter>.<key>, e.g. task.segmentation.unet.num_downs")
-    if "segmentation" in task or own:
+    if "segmentation" in task:
         task["segmentation"] = {**segmentation, "segmenter_keys": own}
     return checked(task, MMDIPConfig, "task")
 

@@ -93,7 +93,7 @@ def test_a_task_is_found_by_name_and_a_config_without_one_is_crossview():
     assert find_task({"name": "mmdip"}).__name__ == "geoloc.tasks.mmdip"
     assert find_task(None).__name__ == find_task({"name": None}).__name__ == "geoloc.tasks.crossview"
     with pytest.raises(ConfigError, match=r"task.name='mmdp' is not a known task; choose one of \['crossview', "
-                                          r"'mmdip'"):
+                                          r"(.*, )?'mmdip'"):  # (a plug-in task another test registered)
         find_task({"name": "mmdp"})
 
 

@@ -18,8 +18,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from geoloc.tasks.mmdip.datasets import STATIC_CLASSES, load_class_fractions  # noqa: E402
+from geoloc.tasks.mmdip.datasets import STATIC_CLASSES  # noqa: E402
 from geoloc.tasks.mmdip.label_census import FILE_NAME  # noqa: E402
+from geoloc.tasks.mmdip.readers import load_class_fractions  # noqa: E402
 
 
 def main(argv=None) -> Path:

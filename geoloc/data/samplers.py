@@ -1,4 +1,5 @@
-"""Training batch samplers, chosen by `sampler.name` (docs/samplers.md).
+"""Training batch samplers, chosen by `sampler.name` (docs/samplers.md). This module declares the `sampler` kind
+and registers the built-ins below.
 
 The trainer calls a factory as factory(labels=, batch_size=, seed=, rank=, world_size=, neighbours=, **config)
 and hands the result to DataLoader(batch_sampler=...). A sampler yields, per batch, this rank's list of
@@ -17,7 +18,10 @@ from torch.utils.data import BatchSampler
 
 from geoloc.data.batch_packing import pack_batches
 from geoloc.data.neighbours import descriptor_neighbour_lists
-from geoloc.registry import register
+from geoloc.registry import declare, register
+
+declare("sampler", section="sampler",
+        runtime=("labels", "batch_size", "seed", "rank", "world_size", "neighbours"))
 
 SAMPLERS_WITHOUT_GPS = "shuffle, no_duplicate or similarity"
 

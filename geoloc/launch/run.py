@@ -1,4 +1,4 @@
-"""What train.py and evaluate.py call: pick the task's runner and hand it the composed config.
+"""What train.py and evaluate.py call: find the task through the registry and hand it the composed config.
 
 Tests call these functions directly with a config from `hydra.compose`.
 """
@@ -6,41 +6,46 @@ Tests call these functions directly with a config from `hydra.compose`.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import json
 import os
 import tempfile
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
+import geoloc.tasks  # noqa: F401  (declares the task kind: every package under geoloc/tasks/ is a task)
+from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.engine import distributed as dist
 from geoloc.launch import resume
 from geoloc.launch.rundir import claimed
 
+DEFAULT_TASK = {"name": "crossview"}  # a checkpoint whose config names no task was written by the cross-view task
 
-TASKS = ("crossview", "mmdip")  # packages under geoloc/tasks/, each with train(cfg, run_dir) and evaluate(cfg, state)
 
-
-def task_package(name: str | None):
-    """geoloc.tasks.<name>: every task package has the same two entry points."""
-    if name not in TASKS:
-        raise ConfigError(f"unknown task {name!r}; choose one of {', '.join(f'task={t}' for t in TASKS)}")
-    return importlib.import_module(f"geoloc.tasks.{name}")
+def find_task(section: DictConfig | dict | None):
+    """The registered task that `section` (a config's `task`) names: an object with `train(cfg, run_dir)` and
+    `evaluate(cfg, state)`; `task.module` is imported first, for a task from outside geoloc."""
+    section = section if section is not None and section.get("name") else DEFAULT_TASK
+    task = registry.find("task", section)
+    missing = [entry for entry in ("train", "evaluate") if not callable(getattr(task, entry, None))]
+    if missing:
+        raise ConfigError(f"task {section['name']!r} ({task!r}) has no {' or '.join(missing)}(...); a task gives "
+                          f"train(cfg, run_dir) and evaluate(cfg, state) (docs/extending.md)")
+    return task
 
 
 def train(cfg: DictConfig) -> dict:
     """Train in `cfg.run_dir`, which the run owns while it lasts (geoloc/launch/rundir.py)."""
     try:
-        package = task_package(cfg.task.name)
+        task = find_task(cfg.task)
         given = command_line(cfg)
         cfg = without_hydra(cfg)
         with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
-            canonical = getattr(package, "canonical_config", None)  # a task that can resume says how it compares
+            canonical = getattr(task, "canonical_config", None)  # a task that can resume says how it compares
             if cfg.get("ckpt") and canonical is not None:  # before any data is generated or checked
-                cfg = resume.resumed_config(cfg, package.RESUME_MAY_CHANGE, canonical, given)
-            return package.train(cfg, run_dir)
+                cfg = resume.resumed_config(cfg, task.RESUME_MAY_CHANGE, canonical, given)
+            return task.train(cfg, run_dir)
     finally:
         dist.cleanup()
 
@@ -72,8 +77,6 @@ def without_hydra(cfg: DictConfig) -> DictConfig:
 def evaluate(cfg: DictConfig) -> dict:
     """Score cfg.ckpt with the task that wrote it. Under Hydra its run dir (Hydra's log and config) is owned like a
     training's, so a failed start leaves none; a config composed outside Hydra may have no run dir."""
-    from omegaconf import OmegaConf
-
     from geoloc.engine import checkpoint
 
     run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
@@ -81,7 +84,7 @@ def evaluate(cfg: DictConfig) -> dict:
         refuse_existing_metrics_out(cfg)
         state = checkpoint.load(cfg.ckpt)
         stored = OmegaConf.create(state.get("config") or "{}")
-        metrics = task_package(OmegaConf.select(stored, "task.name") or "crossview").evaluate(cfg, state)
+        metrics = find_task(stored.get("task")).evaluate(cfg, state)
         if cfg.get("metrics_out") and dist.is_main():
             write_metrics(Path(cfg.metrics_out), metrics, overwrite=cfg.get("metrics_out_overwrite", False))
         return metrics

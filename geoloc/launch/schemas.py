@@ -59,7 +59,7 @@ def register() -> None:
     store = ConfigStore.instance()
     for kind in COMPONENTS:
         for name in registry.names(kind):
-            store.store(group=f"schema/{registry.KINDS[kind]}", name=name, node=factory_defaults(kind, name))
+            store.store(group=f"schema/{registry.section(kind)}", name=name, node=factory_defaults(kind, name))
     for name in registry.names("dataset"):
         store.store(group="schema/dataset", name=name, node=reader_defaults(name))
     for section, schema in (("train", TrainKeys), ("evaluate", EvaluateKeys), ("trainer", TrainerConfig),

@@ -1,11 +1,14 @@
 """The registered backbones. A backbone is an nn.Module with `channels: list[int]` whose forward maps a
-B×3×H×W image to multi-scale maps, fine to coarse (the heads read them; docs/extending.md)."""
+B×3×H×W image to multi-scale maps, fine to coarse (the heads read them; docs/extending.md). This module declares
+the `backbone` kind and registers the built-ins: vgg16 here, timm in timm_backbone.py."""
 
 from __future__ import annotations
 
 from geoloc.models import timm_backbone  # noqa: F401  (registers "timm"; timm itself is imported on use)
 from geoloc.models.vgg import VGG16Trunk
-from geoloc.registry import register
+from geoloc.registry import declare, register
+
+declare("backbone", section="backbone")
 
 
 @register("backbone", "vgg16")

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from geoloc import registry
+from geoloc.models import backbones, heads  # noqa: F401  (declare the backbone and head kinds, register built-ins)
 
 
 @dataclass

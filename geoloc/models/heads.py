@@ -3,7 +3,9 @@
 
 A head may also offer `features(maps) -> (descriptor, map, attention)`: the same descriptor, its B×C×h×w map just
 before the pooling, and its B×1×h×w attention (None where it has none), for methods that match maps rather than
-descriptors (Branch.features, models/crossview.py). A head without it gives the descriptor alone there."""
+descriptors (Branch.features, models/crossview.py). A head without it gives the descriptor alone there.
+
+This module declares the `head` kind and registers the built-ins."""
 
 from __future__ import annotations
 
@@ -12,7 +14,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoloc.models.msae import MSAEHead, PlainHead
-from geoloc.registry import register
+from geoloc.registry import declare, register
+
+declare("head", section="head", runtime=("in_channels", "dim"))
 
 
 @register("head", "msae")

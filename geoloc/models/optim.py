@@ -1,5 +1,6 @@
 """The registered optimizers. A factory takes the parameters to train and `max_epochs`, plus its config keys, and
-returns (optimizer, scheduler or None); the scheduler is stepped once per epoch.
+returns (optimizer, scheduler or None); the scheduler is stepped once per epoch. This module declares the
+`optimizer` kind (config section `optim`) and registers the built-ins.
 
 adam: the paper's Adam (lr 1e-4, betas 0.9/0.999) with StepLR /10 every 80 epochs.
 adamw: Sample4Geo's AdamW with linear warm-up then cosine decay to 0 over the run (there stepped per iteration;
@@ -13,7 +14,9 @@ from typing import Iterable
 
 import torch
 
-from geoloc.registry import register
+from geoloc.registry import declare, register
+
+declare("optimizer", section="optim", runtime=("params", "max_epochs"))
 
 
 @register("optimizer", "adam")

@@ -14,7 +14,7 @@ from geoloc.synthetic import MARKER, DatasetMismatchError, generate
 
 from conftest import REPO as ROOT
 
-from geoloc.tasks.mmdip.datasets import load_class_fractions
+from geoloc.tasks.mmdip.readers import load_class_fractions
 
 
 def _tree(root: Path) -> dict:

@@ -21,7 +21,7 @@ from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
 from geoloc.tasks.crossview.gallery import GalleryConfig
 
-#: the registered kinds a cross-view network and its training are built from (registry.KINDS: their sections)
+#: the registered kinds a cross-view network and its training are built from (registry.section: their sections)
 COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler")
 #: what a resume may change besides the engine's keys (geoloc/launch/resume.py): the processes that render the
 #: synthetic set, which write the same files either way
@@ -47,7 +47,7 @@ class Components:
     sampler: dict = field(default_factory=lambda: {"name": "shuffle"})
 
     def section(self, kind: str) -> dict:
-        return getattr(self, registry.KINDS[kind])
+        return getattr(self, registry.section(kind))
 
 
 @dataclass(frozen=True)
@@ -92,14 +92,14 @@ def _plain(section) -> dict:
 
 def parse_components(cfg: DictConfig) -> Components:
     """The component sections of `cfg`, each checked against its registered factory (name and arguments)."""
-    sections = {registry.KINDS[kind]: _plain(cfg.get(registry.KINDS[kind])) for kind in COMPONENTS}
+    sections = {registry.section(kind): _plain(cfg.get(registry.section(kind))) for kind in COMPONENTS}
     if not sections["sampler"]:  # checkpoints written before samplers were a group
         sections["sampler"] = {"name": "shuffle"}
     for kind in COMPONENTS:
-        section = registry.KINDS[kind]
+        section = registry.section(kind)
         if not sections[section]:
             raise ConfigError(f"config section '{section}' is missing; choose one with {section}=<option>")
-        registry.check(kind, sections[section], runtime=registry.RUNTIME[kind])
+        registry.check(kind, sections[section])
     return Components(**sections)
 
 
@@ -155,7 +155,7 @@ def canonical_config(cfg: DictConfig) -> dict:
     return {
         "dataset": {**asdict(run.data), **registry.with_defaults("dataset", run.reader)},
         "model": asdict(run.model),
-        **{registry.KINDS[kind]: registry.with_defaults(kind, run.components.section(kind)) for kind in COMPONENTS},
+        **{registry.section(kind): registry.with_defaults(kind, run.components.section(kind)) for kind in COMPONENTS},
         "trainer": asdict(run.trainer),
         **asdict(run.job),
     }

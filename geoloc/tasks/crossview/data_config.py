@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 from omegaconf import DictConfig, OmegaConf
 
+import geoloc.datasets  # noqa: F401  (declares the dataset kind and registers the built-in readers)
 from geoloc import registry
 from geoloc.config import checked
 from geoloc.tasks.crossview.views import check_fov
@@ -62,13 +63,14 @@ SHARED_KEYS = tuple(f.name for f in fields(CrossViewDataConfig))
 
 
 def parse_dataset(section) -> tuple[CrossViewDataConfig, dict]:
-    """A dataset section (a DictConfig, a dict, or a CrossViewDataConfig whose reader takes its defaults) -> (its shared keys, checked, as a CrossViewDataConfig; the reader's section: `name`,
-    `module` and the reader's own keys, checked against the reader's signature). Nothing is read."""
+    """A dataset section (a DictConfig, a dict, or a CrossViewDataConfig whose reader takes its defaults) -> (its
+    shared keys, checked, as a CrossViewDataConfig; the reader's section: `name`, `module` and the reader's own keys,
+    checked against the reader's signature). Nothing is read."""
     if isinstance(section, CrossViewDataConfig):
         section = asdict(section)
     params = OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
     data = checked({k: v for k, v in params.items() if k in SHARED_KEYS}, CrossViewDataConfig, "dataset")
     reader = {"name": data.name, "module": data.module,
               **{k: v for k, v in params.items() if k not in SHARED_KEYS}}
-    registry.check("dataset", reader, runtime=registry.RUNTIME["dataset"])
+    registry.check("dataset", reader)
     return data, reader

@@ -1,7 +1,11 @@
-"""Checkpoint configs in the `msae_vgg16` format (one `model` section for the whole network), read in today's
-layout so `evaluate.py`, export and localize still use them: `model: {name: msae_vgg16, width, pretrained,
-batchnorm, msae, dim, ...}` becomes `backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}` and
-`model: {dim}`, and the GMS queue's buffers `queue.*` become `loss.queue.*`. The weights themselves are the same."""
+"""The cross-view checkpoint layouts, and the upgrade from the first to the current one, so `evaluate.py`, export and
+localize read a checkpoint of either. The weights themselves are the same in both.
+
+format 1  one network section, `model: {name: msae_vgg16, width, pretrained, batchnorm, msae, dim, ...}`, and the
+          GMS queue's buffers under `queue.*`;
+format 2  registered components: `backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}`, `model: {dim}`,
+          and the queue's buffers under `loss.queue.*`.
+"""
 
 from __future__ import annotations
 

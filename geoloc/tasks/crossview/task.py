@@ -13,7 +13,9 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig
 
+import geoloc.losses  # noqa: F401  (declares the loss kind and registers its built-ins)
 from geoloc import registry
+from geoloc.data import samplers  # noqa: F401  (the sampler kind)
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
 from geoloc.data.relevance import Relevance
@@ -21,6 +23,7 @@ from geoloc.eval.descriptors import check_descriptors
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
+from geoloc.models import optim  # noqa: F401  (the optimizer kind)
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
 # What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
@@ -46,9 +49,8 @@ class CrossViewTask(Task):
         self.loss_extras = tuple(registry.accepted(getattr(self.loss, "forward", self.loss),
                                                    dict.fromkeys(LOSS_EXTRAS)))
         # what is built later fails here, before any data is read: an unknown name or argument
-        registry.check("optimizer", optim, runtime=("params", "max_epochs"))
-        registry.check("sampler", self.sampler_section,
-                       runtime=("labels", "batch_size", "seed", "rank", "world_size", "neighbours"))
+        registry.check("optimizer", optim)
+        registry.check("sampler", self.sampler_section)
         self.sampler = None
         self.split = None  # the RetrievalSplit validation scores (validate_on): its relevance and views
         self.query_views: dict[str, str] = {}  # {"train": ..., "val": ...}: RetrievalSplit.query_view of each

@@ -2,19 +2,23 @@
 
 The `task` section holds the method (phase 1 segmentation, phase 2 translation, VPR coding); the `dataset`
 section says where the images come from. Unknown keys and bad values raise geoloc.config.ConfigError.
+
+Three parts are registered components with keys of their own, checked against their signatures (by networks.py,
+generator_loss.py and readers.py, which declare their kinds): the segmenter (`task.segmentation.model`, its keys
+under `task.segmentation.<segmenter>`), the generator loss (`task.translation.generator_loss`, a section with
+`name`) and the dataset reader (`dataset.name`, its keys beside the shared ones, as the cross-view dataset does).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from geoloc.config import ConfigError, checked
 
 VARIANTS = ("ssggnet", "ssggnet_sm", "pix2pix", "mgan")
-DATASETS = ("dynamic", "emptycities", "carla4")
-# Generator loss weights (adversarial, L1, perceptual) by name: task.translation.loss_weights
-GENERATOR_LOSS_WEIGHTS = {
-    "paper": {"adv": 1.0, "l1": 1.0, "perceptual": 1.0},  # MMDIP eq. 2: L_G = L_adv + L_pixel + L_perceptual
-    "pix2pix": {"adv": 1.0, "l1": 100.0, "perceptual": 10.0},  # pix2pix's lambda_L1 = 100; VGG term 10 (pix2pixHD)
-}
 
 
 @dataclass
@@ -27,9 +31,9 @@ class SegmentationConfig:
     batch_size: int = 1
     lr: float = 2e-3
     class_weight_formula: str = "paper"  # paper (eq. 1) | authors (1/ln(100 r + 1.02))
-    unet_num_downs: int = 5  # U-Net baseline depth (H, W multiples of 2^num_downs)
-    unet_ngf: int = 32
-    fcn_width: int = 32
+    # {segmenter: its own keys}, written task.segmentation.<segmenter>.<key> (e.g. unet.num_downs); task_config()
+    # fills it, networks.check_segmenters checks each against that segmenter's signature
+    segmenter_keys: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
@@ -47,7 +51,8 @@ class TranslationConfig:
     lr_g: float = 2e-3
     lr_d: float = 4e-3
     beta1: float = 0.5  # Adam beta1 of G and D, as in pix2pix
-    loss_weights: str = "pix2pix"  # pix2pix (adv 1, L1 100, perceptual 10) | paper (eq. 2: 1, 1, 1)
+    # a registered generator loss and its keys: pix2pix (adv 1, L1 100, perceptual 10) | paper (eq. 2: 1, 1, 1)
+    generator_loss: dict[str, Any] = field(default_factory=lambda: {"name": "pix2pix"})
     lambda_seg: float = 1.0  # weighted cross-entropy keeps the segmentation static while G trains through it
     perceptual_weights: str = "none"  # imagenet (torch hub cache) | /path/to/vgg16.pth | none (random, CPU smoke)
     perceptual_layers: list[str] = field(default_factory=lambda: ["relu1_2", "relu2_2", "relu3_3"])
@@ -62,14 +67,6 @@ class TranslationConfig:
             raise ValueError(f"task.translation.variant must be one of {VARIANTS}, got {self.variant!r}")
         if self.epochs < 1 or self.batch_size < 1 or min(self.lr_seg, self.lr_g, self.lr_d) <= 0:
             raise ValueError("task.translation.epochs and batch_size must be >= 1 and learning rates > 0")
-        if self.loss_weights not in GENERATOR_LOSS_WEIGHTS:
-            raise ValueError(f"task.translation.loss_weights must be one of {tuple(GENERATOR_LOSS_WEIGHTS)}, "
-                             f"got {self.loss_weights!r}")
-
-    @property
-    def generator_loss_weights(self) -> dict[str, float]:
-        """{'adv', 'l1', 'perceptual'} -> weight of that term of the generator loss."""
-        return GENERATOR_LOSS_WEIGHTS[self.loss_weights]
 
 
 @dataclass
@@ -112,25 +109,52 @@ class MMDIPConfig:
 
 @dataclass
 class DynamicDataConfig:
-    name: str = "dynamic"  # dynamic (synthetic layout) | carla4 (authors' 4-panel) | emptycities (3-panel, eval)
+    """The keys every dynamic-scene dataset shares. The reader's own keys (the synthetic layout's `preset`,
+    `train_size`...) go to the reader registered under `name` (readers.py), which checks them against its
+    signature; data_config() keeps them in `reader_keys`."""
+
+    name: str = "dynamic"  # a registered reader: dynamic (synthetic layout) | carla4 | emptycities | a plug-in's
+    module: str | None = None  # a plug-in reader's module (docs/extending.md)
     root: str | None = None  # dynamic: null = generate the synthetic layout on first use into the cache
     split: str | None = "val"  # the split scored; emptycities: null = the images directly under root
     image_size: list[int] = field(default_factory=lambda: [128, 128])  # H, W every image is brought to
     val_batch_size: int = 8
     augment: bool = True  # horizontal flips in training
     check_files: str = "exists"  # decode | exists | off
-    # synthetic only: what to generate on first use
-    preset: str = "dynamic_small"
-    train_size: int = 200  # places (two views each)
-    val_size: int = 100
-    view_size: int | None = 128  # rendered side in pixels; null = the preset's
-    seed: int = 0
-    workers: int = 2
+    reader_keys: dict[str, Any] = field(default_factory=dict)  # dataset.<key> beyond the ones above
 
     def __post_init__(self):
-        if self.name not in DATASETS:
-            raise ValueError(f"unknown dynamic-scene dataset {self.name!r}; choose one of {DATASETS}")
-        if self.name != "dynamic" and not self.root:
-            raise ValueError(f"dataset={self.name} needs dataset.root=/path/to/the/images")
         if len(self.image_size) != 2 or min(self.image_size) < 16 or any(s % 8 for s in self.image_size):
             raise ValueError(f"dataset.image_size must be [H, W], multiples of 8 and >= 16, got {self.image_size}")
+
+
+SEGMENTATION_KEYS = tuple(f.name for f in fields(SegmentationConfig) if f.name != "segmenter_keys")
+SHARED_DATA_KEYS = tuple(f.name for f in fields(DynamicDataConfig) if f.name != "reader_keys")
+
+
+def _plain(section) -> dict:
+    return OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section or {})
+
+
+def task_config(section) -> MMDIPConfig:
+    """The `task` section, checked; each task.segmentation.<segmenter> sub-section goes to segmenter_keys."""
+    task = _plain(section)
+    segmentation = _plain(task.get("segmentation"))
+    own = {k: segmentation.pop(k) for k in list(segmentation) if k not in SEGMENTATION_KEYS}
+    for key, value in own.items():
+        if not isinstance(value, dict):
+            raise ConfigError(f"task.segmentation.{key} is not a key of task.segmentation (its keys are "
+                              f"{list(SEGMENTATION_KEYS)}); a segmenter's own keys go under "
+                              f"task.segmentation.<segmenter>.<key>, e.g. task.segmentation.unet.num_downs")
+    if "segmentation" in task:
+        task["segmentation"] = {**segmentation, "segmenter_keys": own}
+    return checked(task, MMDIPConfig, "task")
+
+
+def data_config(section) -> DynamicDataConfig:
+    """The `dataset` section, checked: the shared keys here, the reader's own kept in reader_keys (readers.py
+    checks them against the reader's signature)."""
+    data = _plain(section)
+    shared = {k: v for k, v in data.items() if k in SHARED_DATA_KEYS}
+    return checked({**shared, "reader_keys": {k: v for k, v in data.items() if k not in SHARED_DATA_KEYS}},
+                   DynamicDataConfig, "dataset")

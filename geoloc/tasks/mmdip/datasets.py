@@ -1,5 +1,6 @@
-"""Dynamic-scene readers (MMDIP): the synthetic `dynamic` layout, the authors' 4-panel CARLA PNGs and the
-Empty Cities 3-panel images. Formats: docs/dynamic_layout.md and ../shared/DESIGN.md.
+"""Dynamic-scene datasets (MMDIP): the synthetic `dynamic` layout, the authors' 4-panel CARLA PNGs and the
+Empty Cities 3-panel images. Formats: docs/dynamic_layout.md and ../shared/DESIGN.md. The registered readers that
+task=mmdip builds by `dataset.name` (readers.py) hand these out, with their place protocols and class fractions.
 
 Every reader returns dicts of tensors: `dynamic` and `static` (3 x H x W float in [0, 1]), `mask` (1 x H x W,
 1 where a dynamic object is seen), `index`, and where the format has them `label` (H x W int64 static classes
@@ -14,6 +15,7 @@ import json
 import logging
 import warnings
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -249,36 +251,32 @@ class EmptyCitiesDataset(Dataset):
                        index=index, place=index)
 
 
-def _label_maps(root: Path, split: str, fmt: str):
-    """(label files, read(i) -> H x W class ids, source description) of a split, for the class census."""
-    if fmt == "dynamic":
-        ds = DynamicDataset(root, split, check="off")
-        files = [ds._path("label_static", s) for s in ds.samples]
-        return files, lambda i: read_label(files[i]), {"format": fmt, "split": split, "class_map": None}
-    if fmt == "carla4":
-        ds = CarlaFourPanelDataset(root, split)
-        class_map = {str(t): c for t, c in CARLA_TO_STATIC.items()}
-        return ds.files, lambda i: ds[i]["label"].numpy(), {"format": fmt, "split": split, "class_map": class_map}
-    raise ValueError(f"class fractions are counted on 'dynamic' or 'carla4' labels, not {fmt!r}")
+def dynamic_label_maps(root: Path, split: str) -> tuple[list[Path], Callable[[int], np.ndarray], dict]:
+    """(label files, read(i) -> H x W class ids, source description) of a `dynamic` split, for the class census."""
+    ds = DynamicDataset(root, split, check="off")
+    files = [ds._path("label_static", s) for s in ds.samples]
+    return files, lambda i: read_label(files[i]), {"format": "dynamic", "split": split, "class_map": None}
 
 
-def store_class_fractions(root, fmt: str = "dynamic", split: str = "train") -> list[float]:
-    """Count the split's class fractions now and store them with their source (the synthetic generator's last step)."""
-    files, read, source = _label_maps(Path(root), split, fmt)
-    return label_census.stored_or_counted(Path(root) / label_census.FILE_NAME, files, read, STATIC_CLASSES, source,
-                                          force=True)
+def carla4_label_maps(root: Path, split: str) -> tuple[list[Path], Callable[[int], np.ndarray], dict]:
+    """The same for the authors' 4-panel PNGs: their static seg panels, CARLA tags mapped to the 8 classes."""
+    ds = CarlaFourPanelDataset(root, split)
+    class_map = {str(t): c for t, c in CARLA_TO_STATIC.items()}
+    return ds.files, lambda i: ds[i]["label"].numpy(), {"format": "carla4", "split": split, "class_map": class_map}
 
 
-def load_class_fractions(root, fmt: str = "dynamic", split: str = "train", force: bool = False) -> list[float]:
+def class_fractions(root, split: str, label_maps, force: bool = False) -> list[float]:
     """The split's class fractions r_c, from root/class_fractions.json while it matches the label files on disk.
 
-    Recounted (and stored) when the file is missing, older than the labels or made from other files
-    (geoloc.tasks.mmdip.label_census); the count reads every label map, so an id outside the class set fails naming the
-    file. Raises DataFormatError when one class covers every pixel (nothing to segment); warns for each class
-    with no pixel at all (eq. 1 then gives it the largest weight, 1/ln(1.02) = 50.5, but phase 1 never sees it).
+    `label_maps` is (files, read, source) of the split (dynamic_label_maps, carla4_label_maps); a reader's
+    class_fractions() calls this. Recounted (and stored) when the file is missing, older than the labels or made
+    from other files (geoloc.tasks.mmdip.label_census); the count reads every label map, so an id outside the
+    class set fails naming the file. Raises DataFormatError when one class covers every pixel (nothing to segment);
+    warns for each class with no pixel at all (eq. 1 then gives it the largest weight, 1/ln(1.02) = 50.5, but
+    phase 1 never sees it).
     """
     root = Path(root)
-    files, read, source = _label_maps(root, split, fmt)
+    files, read, source = label_maps
     path = root / label_census.FILE_NAME
     try:
         fractions = label_census.stored_or_counted(path, files, read, STATIC_CLASSES, source, force)

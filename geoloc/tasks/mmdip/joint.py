@@ -1,8 +1,8 @@
 """Phase 2 of MMDIP: segmentation + semantics-guided generator (SSGGNet) + PatchGAN, trained end to end.
 
-Losses: LSGAN adversarial, L1 and VGG16 perceptual on the recovered static image, weighted as
-`task.translation.loss_weights` names (paper: eq. 2's 1 / 1 / 1; pix2pix: 1 / 100 / 10), plus lambda_seg * the
-eq. 1 weighted cross-entropy that keeps the segmentation static. Per-module learning rates
+Losses: the registered generator loss `task.translation.generator_loss` names (generator_loss.py: LSGAN
+adversarial, L1 and VGG16 perceptual on the recovered static image, weighted 1 / 1 / 1 as eq. 2 or 1 / 100 / 10 as
+pix2pix), plus lambda_seg * the eq. 1 weighted cross-entropy that keeps the segmentation static. Per-module rates
 (paper: 1e-4 segmentation, 2e-3 G, 4e-3 D): segmentation and G are two parameter groups of one Adam (one
 backward, one step), D has its own. D and G alternate every batch, so the task steps its own optimizers
 (`automatic_optimization = False`) through engine.backward / engine.step / engine.autocast.
@@ -16,13 +16,15 @@ import torch.nn.functional as F
 
 from geoloc.engine import Task
 from geoloc.eval.image import image_scores_per_image
-from geoloc.losses.gan import lsgan_d_loss, lsgan_g_loss
-from geoloc.losses.perceptual import VGGPerceptualLoss
+from geoloc.losses.gan import lsgan_d_loss
 from geoloc.losses.segmentation import class_weights
 from geoloc.tasks.mmdip.config import MMDIPConfig
+from geoloc.tasks.mmdip.generator_loss import build_generator_loss
 from geoloc.tasks.mmdip.networks import (build_discriminator, build_generator, build_segmenter, generator_input,
                                          to_signed)
 from geoloc.tasks.mmdip.segmentation import batch_confusion, confusion_metrics
+
+LOSS_PREFIX = "generator_loss."
 
 
 class JointTask(Task):
@@ -32,21 +34,19 @@ class JointTask(Task):
     def __init__(self, cfg: MMDIPConfig, fractions, training: bool = True):
         super().__init__()
         self.cfg, self.tcfg, self.num_classes = cfg, cfg.translation, cfg.num_classes
-        self.weights = cfg.translation.generator_loss_weights
         self.seg = build_segmenter(cfg.segmentation, cfg.num_classes)
         self.generator = build_generator(cfg.translation, cfg.num_classes)
         self.discriminator = build_discriminator(cfg.translation)
         self.register_buffer("class_weights", class_weights(fractions, cfg.segmentation.class_weight_formula))
-        self.perceptual = (VGGPerceptualLoss(self.tcfg.perceptual_weights, tuple(self.tcfg.perceptual_layers))
-                           if training and self.weights["perceptual"] > 0 else None)
+        self.generator_loss = build_generator_loss(cfg.translation, training)
 
     def state_dict(self, *args, **kwargs):
-        # the frozen VGG is not learnable state: keep it out of checkpoints
+        # the generator loss (a frozen VGG) is not learnable state: keep it out of checkpoints
         state = super().state_dict(*args, **kwargs)
-        return type(state)((k, v) for k, v in state.items() if not k.startswith("perceptual."))
+        return type(state)((k, v) for k, v in state.items() if not k.startswith(LOSS_PREFIX))
 
     def load_state_dict(self, state_dict, strict: bool = True):
-        own = {k: v for k, v in super().state_dict().items() if k.startswith("perceptual.")}
+        own = {k: v for k, v in super().state_dict().items() if k.startswith(LOSS_PREFIX)}
         return super().load_state_dict({**state_dict, **own}, strict=strict)
 
     def configure_optimizers(self):
@@ -75,19 +75,15 @@ class JointTask(Task):
 
         self.discriminator.requires_grad_(False)  # G's adversarial term must not leave gradients in D
         with engine.autocast():
-            adv = lsgan_g_loss(self.discriminator(torch.cat([fake, dyn_signed], 1)))
-            l1 = F.l1_loss(fake, real)
+            d_fake = self.discriminator(torch.cat([fake, dyn_signed], 1))
             ce = F.cross_entropy(logits.float(), batch["label"], weight=self.class_weights)
-            loss = self.weights["adv"] * adv + self.weights["l1"] * l1 + self.tcfg.lambda_seg * ce
-            perc = torch.zeros((), device=fake.device)
-            if self.perceptual is not None:
-                perc = self.perceptual((fake.float() + 1) / 2, batch["static"])
-                loss = loss + self.weights["perceptual"] * perc
+            terms = self.generator_loss(fake, d_fake, batch)
+            loss = terms.pop("loss") + self.tcfg.lambda_seg * ce
         engine.backward(loss)
         engine.step(gen_opt)
         self.discriminator.requires_grad_(True)
-        return {"loss": loss.detach(), "d_loss": d_loss.detach(), "g_adv": adv.detach(), "l1": l1.detach(),
-                "perceptual": perc.detach(), "ce": ce.detach()}
+        return {"loss": loss.detach(), "d_loss": d_loss.detach(), **{k: v.detach() for k, v in terms.items()},
+                "ce": ce.detach()}
 
     def validation_step(self, batch):
         logits, fake = self.translate(batch["dynamic"], batch.get("mask"))

@@ -1,5 +1,10 @@
 """Builds MMDIP's networks from config, and the generator input of each variant.
 
+Phase 1's network is a registered `segmenter` (the kind is declared here): a factory taking `num_classes` and its
+own keys, returning a module that maps B×3×H×W images to B×num_classes×H×W logits. `task.segmentation.model`
+names it, `task.segmentation.module` imports a plug-in's, and `task.segmentation.<segmenter>.<key>` sets its keys.
+Built-ins: erfnet (the paper's), fcn and unet (the Table I baselines).
+
 Generator inputs (K = num_classes, images in [-1, 1]):
   ssggnet     gray(dynamic) copied K times ⊕ S (softmax of the segmentation), 2K channels (paper);
   ssggnet_sm  gray(dynamic) copied K times ⊕ onehot(M) (argmax), 2K channels;
@@ -14,11 +19,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoloc import registry
+from geoloc.config import ConfigError
 from geoloc.models.erfnet import ERFNet
 from geoloc.models.fcn import FCN8s
 from geoloc.models.patchgan import PatchGAN
 from geoloc.models.unet import UNet
 from geoloc.tasks.mmdip.config import SegmentationConfig, TranslationConfig
+
+registry.declare("segmenter", section="task.segmentation", name_key="task.segmentation.model", runtime=("num_classes",))
 
 
 @registry.register("segmenter", "erfnet")
@@ -27,27 +35,39 @@ def erfnet(num_classes: int) -> ERFNet:
 
 
 @registry.register("segmenter", "fcn")
-def fcn(num_classes: int, fcn_width: int = 32) -> FCN8s:
-    return FCN8s(num_classes, width=fcn_width)
+def fcn(num_classes: int, width: int = 32) -> FCN8s:
+    return FCN8s(num_classes, width=width)
 
 
 @registry.register("segmenter", "unet")
-def unet(num_classes: int, unet_num_downs: int = 5, unet_ngf: int = 32) -> UNet:
-    return UNet(3, num_classes, num_downs=unet_num_downs, ngf=unet_ngf, final=None, dropout=False)
+def unet(num_classes: int, num_downs: int = 5, ngf: int = 32) -> UNet:
+    """num_downs: depth (H, W multiples of 2^num_downs)."""
+    return UNet(3, num_classes, num_downs=num_downs, ngf=ngf, final=None, dropout=False)
 
 
-def segmenter_factory(cfg: SegmentationConfig):
-    """The registered segmenter task.segmentation.model names (after importing task.segmentation.module)."""
+def check_segmenters(cfg: SegmentationConfig) -> None:
+    """The chosen segmenter, and every task.segmentation.<segmenter> section given, against the registry: an
+    unknown name or key fails here, before any data."""
     registry.import_module(cfg.module, "task.segmentation")
-    return registry.lookup("segmenter", cfg.model)
+    registry.lookup("segmenter", cfg.model)
+    for name in cfg.segmenter_keys:
+        if name not in registry.names("segmenter"):
+            raise ConfigError(f"task.segmentation.{name} is neither a key of task.segmentation nor a registered "
+                              f"segmenter ({registry.names('segmenter')}); a segmenter's own keys go under "
+                              f"task.segmentation.<segmenter>")
+    for name in dict.fromkeys([cfg.model, *cfg.segmenter_keys]):
+        registry.check("segmenter", _section(cfg, name), where=f"task.segmentation.{name}")
 
 
 def build_segmenter(cfg: SegmentationConfig, num_classes: int) -> nn.Module:
-    """A segmenter maps B×3×H×W images to B×num_classes×H×W logits; it takes num_classes and, if it names them,
-    the baselines' size keys of task.segmentation (fcn_width, unet_num_downs, unet_ngf)."""
-    factory = segmenter_factory(cfg)
-    sizes = {"fcn_width": cfg.fcn_width, "unet_num_downs": cfg.unet_num_downs, "unet_ngf": cfg.unet_ngf}
-    return factory(**registry.accepted(factory, {"num_classes": num_classes, **sizes}))
+    """The segmenter task.segmentation.model names, with its keys: B×3×H×W images -> B×num_classes×H×W logits."""
+    registry.import_module(cfg.module, "task.segmentation")
+    return registry.build("segmenter", _section(cfg, cfg.model), where=f"task.segmentation.{cfg.model}",
+                          num_classes=num_classes)
+
+
+def _section(cfg: SegmentationConfig, name: str) -> dict:
+    return {"name": name, **cfg.segmenter_keys.get(name, {})}
 
 
 def generator_channels(variant: str, num_classes: int) -> int:

@@ -16,33 +16,21 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from geoloc.config import ConfigError, checked, to_yaml
-from geoloc.tasks.mmdip.datasets import (NUM_CLASSES, CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset,
-                                 load_class_fractions)
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.tasks.mmdip.config import DATASETS, DynamicDataConfig, MMDIPConfig
+from geoloc.tasks.mmdip.config import DynamicDataConfig, MMDIPConfig, data_config, task_config
+from geoloc.tasks.mmdip.datasets import NUM_CLASSES
+from geoloc.tasks.mmdip.generator_loss import check_generator_loss
 from geoloc.tasks.mmdip.joint import JointTask
-from geoloc.tasks.mmdip.networks import segmenter_factory
-from geoloc.tasks.mmdip.protocol import place_protocol
+from geoloc.tasks.mmdip.networks import check_segmenters
+from geoloc.tasks.mmdip.readers import build_reader, check_reader
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
+from geoloc.tasks.mmdip.stored_config import upgraded_config
 
 TRANSFORM_KEYS = ("image_size",)  # must stay as trained
 IMAGE_KEYS = ("L1", "L2", "PSNR", "SSIM")
-
-
-def dataset_root(cfg: DynamicDataConfig) -> Path:
-    """The dataset folder; the synthetic `dynamic` layout is generated on first use when root is null."""
-    if cfg.root:
-        return Path(cfg.root).expanduser()
-    from geoloc.synthetic import default_cache
-    from geoloc.synthetic import ensure_dataset
-
-    root = default_cache() / (f"dynamic-{cfg.preset}-{cfg.view_size or 'preset'}px-{cfg.train_size}-{cfg.val_size}"
-                              f"-seed{cfg.seed}")
-    return Path(ensure_dataset("dynamic", root, preset=cfg.preset, train=cfg.train_size, val=cfg.val_size,
-                               seed=cfg.seed, workers=cfg.workers, view_size=cfg.view_size))
 
 
 def vpr_dir(run_dir: Path, dataset: str) -> Path:
@@ -51,26 +39,13 @@ def vpr_dir(run_dir: Path, dataset: str) -> Path:
     return Path(run_dir) / "vpr" if dataset == "dynamic" else Path(run_dir) / "vpr" / dataset
 
 
-def build_split(cfg: DynamicDataConfig, root: Path, split: str, train: bool, augment_seed: int = 0):
-    """`augment_seed` is the run's `seed`; `dataset.seed` only picks the synthetic world."""
-    if cfg.name == "dynamic":
-        return DynamicDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=augment_seed,
-                              check=cfg.check_files)
-    if cfg.name == "carla4":
-        return CarlaFourPanelDataset(root, split, cfg.image_size, augment=train and cfg.augment, seed=augment_seed)
-    return EmptyCitiesDataset(root, split, cfg.image_size)
-
-
 def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfig]:
-    task_cfg = checked(cfg.task, MMDIPConfig, "task")
-    if cfg.dataset.get("name") not in DATASETS:
-        raise ConfigError(f"task=mmdip reads dynamic-scene data: add dataset=dynamic (or dataset=carla4 "
-                          f"dataset.root=DIR); dataset={cfg.dataset.get('name')} is a cross-view dataset")
-    data_cfg = checked(cfg.dataset, DynamicDataConfig, "dataset")
+    """The run's typed configs; every registered part (segmenter, generator loss, reader) is checked against the
+    registry here, so an unknown name or key fails before any data is read or generated."""
+    task_cfg = task_config(cfg.task)
+    data_cfg = data_config(cfg.dataset)
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
-    if data_cfg.name == "emptycities":
-        raise ConfigError("dataset=emptycities has no labels: it is for evaluation only (evaluate.py ckpt=...)")
-    segmenter_factory(task_cfg.segmentation)  # an unknown task.segmentation.model fails here, before any data
+    check_parts(task_cfg, data_cfg)
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
     if cfg.get("ckpt") or cfg.get("init_from"):
@@ -78,6 +53,12 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
                           "with init_from= is not supported. Start the run again in a new run dir (leave "
                           "hydra.run.dir at its default).")
     return task_cfg, data_cfg, trainer_cfg
+
+
+def check_parts(task_cfg: MMDIPConfig, data_cfg: DynamicDataConfig) -> None:
+    check_segmenters(task_cfg.segmentation)
+    check_generator_loss(task_cfg.translation)
+    check_reader(data_cfg)
 
 
 def phase_trainer(trainer_cfg: TrainerConfig, epochs: int, run_dir: Path, yaml: str) -> Trainer:
@@ -115,10 +96,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     task_cfg, data_cfg, trainer_cfg = parse(cfg)
     run_dir = Path(run_dir)
     yaml = to_yaml(cfg)
-    root = dataset_root(data_cfg)
-    fractions = load_class_fractions(root, data_cfg.name)
-    train_set = build_split(data_cfg, root, "train", train=True, augment_seed=trainer_cfg.seed)
-    val_set = build_split(data_cfg, root, "val", train=False)
+    reader = build_reader(data_cfg)
+    fractions = reader.class_fractions()  # a reader without labels (emptycities) refuses to train here
+    train_set = reader.split("train", train=True, seed=trainer_cfg.seed)  # dataset.seed only picks a world
+    val_set = reader.split("val")
 
     _, best1 = run_phase1(task_cfg, data_cfg, trainer_cfg, train_set, val_set, fractions, run_dir / "phase1", yaml)
     print(f"phase 1 ({task_cfg.segmentation.model}) best: " + _fmt(best1))
@@ -127,7 +108,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict:
     print(f"phase 2 ({task_cfg.translation.variant}) best: " + _fmt(best2))
     result = {"phase1": best1, "phase2": best2}
     if dist.is_main():
-        protocol = place_protocol(data_cfg.name, root, data_cfg.split, data_cfg.image_size)
+        protocol = reader.place_protocol(data_cfg.split)
         out = evaluate_retrieval(task, protocol, task_cfg.vpr, device, vpr_dir(run_dir, data_cfg.name),
                                  model_id(run_dir / "phase2" / "best.pt"), data_cfg.val_batch_size,
                                  trainer_cfg.num_workers)
@@ -167,8 +148,8 @@ def load_task(ckpt_path: Path, state: dict | None = None) -> tuple[JointTask | S
     """(task with the checkpoint's weights, its task config, its stored config): a JointTask for a phase-2
     checkpoint, a SegmentationTask for a phase-1 one. `state`: the checkpoint, when already loaded."""
     state = state if state is not None else ckpt_io.load(ckpt_path)
-    stored = OmegaConf.create(state["config"])
-    task_cfg = checked(stored.task, MMDIPConfig, "task")
+    stored = upgraded_config(OmegaConf.create(state["config"]))
+    task_cfg = task_config(stored.task)
     uniform = [1.0 / task_cfg.num_classes] * task_cfg.num_classes  # the stored class weights replace these
     if any(k.startswith("generator.") for k in state["task"]):
         task = JointTask(task_cfg, uniform, training=False)
@@ -189,24 +170,24 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
     launcher writes the metrics to `metrics_out`."""
     ckpt_path = Path(cfg.ckpt)
     task, task_cfg, stored = load_task(ckpt_path, state)
-    data_cfg = checked(_merged_dataset(stored.dataset, cfg.get("dataset")), DynamicDataConfig, "dataset")
+    data_cfg = data_config(_merged_dataset(stored.dataset, cfg.get("dataset")))
     is_joint = isinstance(task, JointTask)
-    if not is_joint and data_cfg.name == "emptycities":
+    reader = build_reader(data_cfg)
+    if not is_joint and not reader.has_labels:
         raise ConfigError(f"{ckpt_path} is a phase-1 (segmentation) checkpoint: it is scored against labels, and "
-                          f"dataset=emptycities has none. Evaluate phase2/best.pt there, or a phase-1 checkpoint "
-                          f"on dataset=dynamic or dataset=carla4")
+                          f"dataset={data_cfg.name} has none. Evaluate phase2/best.pt there, or a phase-1 checkpoint "
+                          f"on a dataset with labels (dataset=dynamic or dataset=carla4)")
     device = dist.init_from_env(cfg.get("device", "auto"))
     task.to(device)
-    root = dataset_root(data_cfg)
 
     if is_joint:
-        protocol = place_protocol(data_cfg.name, root, data_cfg.split, data_cfg.image_size)
+        protocol = reader.place_protocol(data_cfg.split)
         metrics = evaluate_retrieval(task, protocol, task_cfg.vpr, device,
                                      vpr_dir(ckpt_path.resolve().parent.parent, data_cfg.name), model_id(ckpt_path),
                                      data_cfg.val_batch_size)["metrics"]
         print_recall(metrics, f"MMDIP retrieval, {data_cfg.name} {data_cfg.split or ''}, ckpt {ckpt_path}")
     else:
-        dataset = build_split(data_cfg, root, data_cfg.split, train=False)
+        dataset = reader.split(data_cfg.split)
         loader = torch.utils.data.DataLoader(dataset, batch_size=data_cfg.val_batch_size)
         conf = sum(batch_confusion(task.seg(b["dynamic"].to(device)).argmax(1), b["label"].to(device),
                                    task.num_classes).sum(0) for b in loader)

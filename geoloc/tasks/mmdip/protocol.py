@@ -1,4 +1,5 @@
-"""The place protocol of each dynamic-scene reader: which images are the queries, which the gallery.
+"""Place protocols: which images of a dynamic-scene reader are the queries, which the gallery. Each reader gives
+its own (readers.py, `reader.place_protocol(split)`); the built-ins:
 
   dynamic      queries: the `query` rows of the split (dynamic views); gallery: its `reference` rows, static views
                of the same places from another pose, time and traffic. Place ids come from the split's csv.
@@ -19,10 +20,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from torch.utils.data import Dataset
 
-from geoloc.tasks.mmdip.datasets import CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset, panel_folder
+from geoloc.tasks.mmdip.datasets import panel_folder
 
 TRAIN_SPLIT = "train"
 FROM_TRAIN, FROM_GALLERY = "train split", "gallery (no train split)"
@@ -31,7 +33,8 @@ FROM_TRAIN, FROM_GALLERY = "train split", "gallery (no train split)"
 @dataclass
 class PlaceProtocol:
     """Queries (items with `dynamic`, `mask`, `static`, `place`) against references (`static`, `place`, and
-    `label` when `has_labels`); `vocabulary` holds the images whose `static` views train the BoW words."""
+    `label` when `has_labels`); `vocabulary` holds the images whose `static` views train the BoW words. `folder`
+    is where the split's images are read from."""
 
     name: str
     root: Path
@@ -42,28 +45,21 @@ class PlaceProtocol:
     vocabulary: Dataset
     vocabulary_source: str
     has_labels: bool
+    folder: Path
 
 
-def place_protocol(name: str, root, split: str | None, image_size) -> PlaceProtocol:
-    """The protocol of reader `name` ("dynamic", "carla4" or "emptycities") on `split` of `root`."""
-    root, size = Path(root), tuple(image_size)
-    if name == "dynamic":
-        def rows(s, roles=("reference", "query")):
-            return DynamicDataset(root, s, image_size=size, roles=roles, check="off")
-
-        return PlaceProtocol(name, root, split, size, rows(split, ("query",)), rows(split, ("reference",)),
-                             rows(TRAIN_SPLIT), FROM_TRAIN, True)
-    readers = {"carla4": CarlaFourPanelDataset, "emptycities": EmptyCitiesDataset}
-    if name not in readers:
-        raise ValueError(f"no place protocol for dataset {name!r}; choose one of dynamic, {', '.join(readers)}")
-    panels = readers[name](root, split, size)  # one set of files: dynamic panels query, static panels reference
+def each_file_a_place(name: str, root: Path, split: str | None, image_size, read: Callable[[str | None], Dataset],
+                      has_labels: bool) -> PlaceProtocol:
+    """The protocol of a folder of samples that each hold one place's dynamic and static view: each sample's
+    dynamic view queries, its static view is the gallery entry. `read(split)` gives the samples of a split."""
+    root = Path(root)
+    samples = read(split)
     has_train = (root / TRAIN_SPLIT).is_dir()
-    vocabulary = readers[name](root, TRAIN_SPLIT, size) if has_train else panels
-    return PlaceProtocol(name, root, split, size, panels, panels, vocabulary,
-                         FROM_TRAIN if has_train else FROM_GALLERY, name == "carla4")
+    vocabulary = read(TRAIN_SPLIT) if has_train else samples
+    return PlaceProtocol(name, root, split, tuple(image_size), samples, samples, vocabulary,
+                         FROM_TRAIN if has_train else FROM_GALLERY, has_labels, panel_folder(root, split))
 
 
 def describe(protocol: PlaceProtocol) -> str:
-    folder = panel_folder(protocol.root, protocol.split) if protocol.name != "dynamic" else protocol.root
-    return (f"{protocol.name} at {folder}: {len(protocol.queries)} queries (dynamic views) against "
+    return (f"{protocol.name} at {protocol.folder}: {len(protocol.queries)} queries (dynamic views) against "
             f"{len(protocol.references)} references (static views), vocabulary from the {protocol.vocabulary_source}")

@@ -158,7 +158,7 @@ def model_id(ckpt: Path) -> str:
 
 def evaluate_retrieval(task, protocol: PlaceProtocol, cfg: VPRConfig, device, artefact_dir: Path, model: str,
                        batch_size: int = 8, num_workers: int = 0, extra_levels=(), log=print) -> dict:
-    """Fused retrieval under `protocol` (protocol.place_protocol); returns metrics, ranks and examples.
+    """Fused retrieval under `protocol` (a reader's place_protocol); returns metrics, ranks and examples.
 
     `model` identifies the weights (model_id of the checkpoint): a saved gallery is reused only for the same
     weights and settings, the vocabulary for the same images and ORB / vocabulary settings.

@@ -13,8 +13,9 @@
 
 Each table is written as DIR/table_<n>.md and DIR/table_<n>.json. Phase 2 of every variant starts from the
 ERFNet phase-1 checkpoint, so Tables II and III compare generators on one segmentation network. Retrieval follows
-the place protocol of the dataset's reader (protocol.py). SRMGAN, a row of the paper's Tables II-III, is not
-implemented (docs/mmdip.md says why).
+the place protocol of the dataset's reader (readers.py). Table I runs each segmenter with its own keys from
+task.segmentation.<segmenter> (e.g. task.segmentation.unet.num_downs). SRMGAN, a row of the paper's Tables II-III,
+is not implemented (docs/mmdip.md says why).
 """
 
 from __future__ import annotations
@@ -34,11 +35,11 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from geoloc.config import to_yaml  # noqa: E402
-from geoloc.tasks.mmdip.datasets import STATIC_CLASSES, load_class_fractions  # noqa: E402
+from geoloc.tasks.mmdip.datasets import STATIC_CLASSES  # noqa: E402
 from geoloc.synthetic.classes import colorize  # noqa: E402
 from geoloc.eval.plots import grid, save_png  # noqa: E402
-from geoloc.tasks.mmdip.pipeline import build_split, dataset_root, parse, run_phase1, run_phase2  # noqa: E402
-from geoloc.tasks.mmdip.protocol import place_protocol  # noqa: E402
+from geoloc.tasks.mmdip.pipeline import parse, run_phase1, run_phase2  # noqa: E402
+from geoloc.tasks.mmdip.readers import build_reader  # noqa: E402
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id  # noqa: E402
 
 CONF = Path(__file__).resolve().parents[3] / "conf"
@@ -141,11 +142,11 @@ def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     yaml = to_yaml(cfg)
     (out / "config.yaml").write_text(yaml)
-    root = dataset_root(data_cfg)
-    fractions = load_class_fractions(root, data_cfg.name)
-    protocol = place_protocol(data_cfg.name, root, data_cfg.split, data_cfg.image_size)
-    train_set = build_split(data_cfg, root, "train", train=True, augment_seed=trainer_cfg.seed)
-    val_set = build_split(data_cfg, root, "val", train=False)
+    reader = build_reader(data_cfg)
+    fractions = reader.class_fractions()
+    protocol = reader.place_protocol(data_cfg.split)
+    train_set = reader.split("train", train=True, seed=trainer_cfg.seed)
+    val_set = reader.split("val")
     summary = {}
 
     seg_models = list(SEGMENTERS) if "I" in tables else ["erfnet"]

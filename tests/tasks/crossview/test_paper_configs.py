@@ -19,8 +19,6 @@ from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.synthetic.config import resolve
 from geoloc.tasks.crossview.data_config import parse_dataset
-
-from geoloc.tasks.mmdip.config import GENERATOR_LOSS_WEIGHTS
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.pipeline import parse
 from geoloc.tasks.mmdip.segmentation import SegmentationTask
@@ -37,8 +35,8 @@ def crossview_sections(experiment: str, root, overrides=()) -> dict:
     """The experiment's groups as the cross-view runner reads them (unknown keys and bad values fail)."""
     cfg = compose_train([f"experiment={experiment}", f"dataset.root={root}", f"run_dir={root}", *overrides])
     plain = lambda section: OmegaConf.create(OmegaConf.to_container(section, resolve=True))  # noqa: E731
-    registry.check("loss", cfg.loss, runtime=("dim",))
-    registry.check("optimizer", cfg.optim, runtime=("params", "max_epochs"))
+    registry.check("loss", cfg.loss)
+    registry.check("optimizer", cfg.optim)
     return {"dataset": parse_dataset(cfg.dataset)[0], "model": checked(cfg.model, CrossViewModelConfig, "model"),
             "backbone": plain(cfg.backbone), "head": plain(cfg.head), "loss": plain(cfg.loss),
             "optim": plain(cfg.optim), "sampler": plain(cfg.sampler),
@@ -100,7 +98,7 @@ def test_mmdip_paper_config_holds_the_paper_numbers():
     seg, tr, vpr = task.segmentation, task.translation, task.vpr
     assert (seg.model, seg.lr, seg.batch_size, seg.class_weight_formula) == ("erfnet", 2e-3, 1, "paper")
     assert (tr.variant, tr.lr_seg, tr.lr_g, tr.lr_d, tr.batch_size) == ("ssggnet", 1e-4, 2e-3, 4e-3, 4)
-    assert tr.generator_loss_weights == {"adv": 1.0, "l1": 1.0, "perceptual": 1.0}  # eq. 2
+    assert tr.generator_loss == {"name": "paper"}  # eq. 2's unit weights: test_mmdip_generator_loss_...
     assert tr.perceptual_weights == "imagenet"
     assert (tr.num_downs, tr.ngf, tr.ndf, tr.d_layers) == (8, 64, 64, 3)  # pix2pix U-Net, 70x70 PatchGAN
     assert (vpr.levels, vpr.alpha) == (2, 0.5)
@@ -109,8 +107,9 @@ def test_mmdip_paper_config_holds_the_paper_numbers():
 
 def test_mmdip_paper_config_renders_and_trains_at_512():
     task, dataset, _ = mmdip_sections()
-    assert dataset.image_size == [512, 512] and dataset.view_size == 512
-    rendered, _ = resolve("dynamic", dataset.preset, {"view_size": dataset.view_size})
+    synthetic = dataset.reader_keys  # the `dynamic` reader's own keys
+    assert dataset.image_size == [512, 512] and synthetic["view_size"] == 512
+    rendered, _ = resolve("dynamic", synthetic["preset"], {"view_size": synthetic["view_size"]})
     assert rendered.view_size == 512  # what the generator draws is what the networks see: nothing upsampled
     assert all(side % 2 ** task.translation.num_downs == 0 for side in dataset.image_size)  # the U-Net takes it
 
@@ -129,11 +128,15 @@ class StubEngine:
         optimizer.zero_grad()
 
 
+GENERATOR_LOSS_WEIGHTS = {"paper": {"adv": 1.0, "l1": 1.0, "perceptual": 1.0},  # eq. 2
+                          "pix2pix": {"adv": 1.0, "l1": 100.0, "perceptual": 10.0}}  # lambda_L1 100, VGG 10
+
+
 @pytest.mark.parametrize("weights", ["paper", "pix2pix"])
 def test_mmdip_generator_loss_uses_the_named_weights(weights):
     small = ["task.translation.num_downs=3", "task.translation.ngf=4", "task.translation.ndf=4",
              "task.translation.d_layers=1", "task.translation.perceptual_weights=none",
-             "task.translation.perceptual_layers=[relu1_2]", f"task.translation.loss_weights={weights}"]
+             "task.translation.perceptual_layers=[relu1_2]", f"task.translation.generator_loss.name={weights}"]
     task_cfg, _, _ = mmdip_sections(small)
     torch.manual_seed(0)
     task = JointTask(task_cfg, FRACTIONS)
@@ -147,7 +150,7 @@ def test_mmdip_generator_loss_uses_the_named_weights(weights):
     expected = w["adv"] * out["g_adv"] + w["l1"] * out["l1"] + w["perceptual"] * out["perceptual"] + out["ce"]
     assert min(out["g_adv"], out["l1"], out["perceptual"]) > 0  # every term present, so a swapped weight shows
     assert out["loss"] == pytest.approx(float(expected), rel=1e-5)
-    assert GENERATOR_LOSS_WEIGHTS["pix2pix"] == {"adv": 1.0, "l1": 100.0, "perceptual": 10.0}
+    assert task.generator_loss.weights == w
 
 
 def test_mmdip_phase1_optimizer_follows_the_paper_config():
@@ -160,7 +163,8 @@ def test_mmdip_phase1_optimizer_follows_the_paper_config():
     ("paper_cvusa", "+dataset.rotation_degs=10", "rotation_degs"),
     ("paper_cvact", "+optim.step=80", "step"),
     ("paper_mmdip", "+task.translation.loss_weight=paper", "loss_weight"),
-    ("paper_mmdip", "task.translation.loss_weights=unit", "loss_weights"),
+    ("paper_mmdip", "task.translation.generator_loss.name=unit", r"generator_loss.name='unit' is not a known"),
+    ("paper_mmdip", "+task.translation.generator_loss.l_1=1", r"generator_loss.l_1 is not an argument"),
 ])
 def test_a_typo_in_a_paper_config_fails_at_start_up(experiment, typo, named, tmp_path):
     with pytest.raises(ConfigError, match=named):

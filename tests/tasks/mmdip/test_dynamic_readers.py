@@ -12,8 +12,8 @@ from geoloc.tasks.mmdip.datasets import (
     DataFormatError,
     DynamicDataset,
     EmptyCitiesDataset,
-    load_class_fractions,
 )
+from geoloc.tasks.mmdip.readers import load_class_fractions
 
 from conftest import REPO
 from helpers.dynamic_data import (

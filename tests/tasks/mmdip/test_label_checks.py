@@ -1,5 +1,6 @@
 """MMDIP checks its labels: ids outside the class set, stale class fractions, absent classes and single-class
-labels are caught at start-up (geoloc.tasks.mmdip.datasets.load_class_fractions, geoloc.tasks.mmdip.label_census)."""
+labels are caught at start-up (a reader's class_fractions: geoloc.tasks.mmdip.datasets.class_fractions,
+geoloc.tasks.mmdip.label_census)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ from geoloc.tasks.mmdip.datasets import (
     CARLA_TO_STATIC,
     DataFormatError,
     DynamicDataset,
-    load_class_fractions,
 )
+from geoloc.tasks.mmdip.readers import load_class_fractions
 
 from conftest import compose_train
 from helpers.dynamic_data import write_four_panel, write_tiny_dynamic

@@ -111,7 +111,8 @@ def segmentation_batch():
 @pytest.mark.parametrize("formula", ["paper", "authors"])
 def test_phase1_loss_is_the_eq1_weighted_cross_entropy(formula):
     torch.manual_seed(0)
-    task = SegmentationTask(SegmentationConfig(model="fcn", fcn_width=4, class_weight_formula=formula), 8,
+    task = SegmentationTask(SegmentationConfig(model="fcn", segmenter_keys={"fcn": {"width": 4}},
+                                               class_weight_formula=formula), 8,
                             FRACTIONS).eval()
     batch = segmentation_batch()
     loss = task.training_step(batch, None)["loss"]
@@ -125,7 +126,7 @@ def test_phase1_loss_is_the_eq1_weighted_cross_entropy(formula):
 
 def test_phase2_segmentation_term_is_the_eq1_weighted_cross_entropy():
     torch.manual_seed(0)
-    cfg = MMDIPConfig(segmentation=SegmentationConfig(model="fcn", fcn_width=4),
+    cfg = MMDIPConfig(segmentation=SegmentationConfig(model="fcn", segmenter_keys={"fcn": {"width": 4}}),
                       translation=TranslationConfig(num_downs=3, ngf=4, ndf=4, d_layers=2))
     task = JointTask(cfg, FRACTIONS, training=False).eval()
     task.configure_optimizers()

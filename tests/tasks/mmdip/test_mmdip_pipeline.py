@@ -1,5 +1,6 @@
 """Tiny CPU runs of the MMDIP task: phase 1 -> phase 2 -> VPR evaluation, then evaluate() on the checkpoints."""
 
+import dataclasses
 import json
 
 import cv2
@@ -10,9 +11,12 @@ from geoloc.config import ConfigError
 from geoloc.tasks import mmdip
 from geoloc.tasks.mmdip import retrieval
 from geoloc.tasks.mmdip.config import MMDIPConfig, TranslationConfig
-from geoloc.tasks.mmdip.networks import build_generator, generator_input
+from geoloc.models.fcn import FCN8s
+from geoloc.tasks.mmdip.networks import build_generator, build_segmenter, generator_input
+from geoloc.tasks.mmdip.pipeline import parse
+from geoloc.tasks.mmdip.segmentation import SegmentationTask
 
-from conftest import compose_train
+from conftest import compose_evaluate, compose_train
 from helpers.dynamic_data import TINY_MMDIP, evaluate, write_tiny_dynamic
 
 
@@ -36,10 +40,42 @@ def test_config_errors_are_clear(tmp_path):
                     tmp_path)
     with pytest.raises(ConfigError, match="vocab_sz"):
         mmdip.train(compose_train([*TINY_MMDIP, "+task.vpr.vocab_sz=3", f"run_dir={tmp_path}"]), tmp_path)
-    with pytest.raises(ConfigError, match="dataset=dynamic"):
+    with pytest.raises(ConfigError, match=r"dataset.name='synthetic' is not a known mmdip_dataset; choose one of "
+                                          r"\['carla4', 'dynamic', 'emptycities'"):
         mmdip.train(compose_train(["task=mmdip", "dataset=synthetic", f"run_dir={tmp_path}"]), tmp_path)
     assert compose_train(["task=mmdip", f"run_dir={tmp_path}"]).dataset.name == "dynamic"  # task=mmdip switches
     assert MMDIPConfig().translation.lr_d == 4e-3
+
+
+@pytest.mark.parametrize("override,message", [
+    ("+task.segmentation.unet_num_downs=3", r"task.segmentation.unet_num_downs is not a key of task.segmentation .*"
+                                             r"task.segmentation.<segmenter>.<key>"),
+    ("+task.segmentation.unett.num_downs=3", r"task.segmentation.unett is neither a key of task.segmentation nor a "
+                                              r"registered segmenter \(\['erfnet', 'fcn', .*'unet'\]\)"),
+    ("+task.segmentation.unet.num_down=3", r"task.segmentation.unet.num_down is not an argument of "
+                                            r"geoloc.tasks.mmdip.networks.unet; its arguments are \['num_downs', 'ngf'\]"),
+    ("+task.translation.generator_loss.l2=1", r"task.translation.generator_loss.l2 is not an argument of "
+                                               r"geoloc.tasks.mmdip.generator_loss.pix2pix"),
+    ("+dataset.presets=dynamic", r"dataset.presets is not an argument of geoloc.tasks.mmdip.readers.dynamic; its "
+                                  r"arguments are \['preset', 'train_size'"),
+    ("dataset.name=carla4", r"dataset.preset is not an argument of geoloc.tasks.mmdip.readers.carla4"),
+])
+def test_each_registered_part_checks_its_own_keys_at_start_up(override, message, tmp_path):
+    """The segmenter, the generator loss and the reader each take only their own keys, named in the error."""
+    with pytest.raises(ConfigError, match=message):
+        parse(compose_train(["task=mmdip", override, f"run_dir={tmp_path}"]))
+
+
+def test_each_segmenter_keeps_its_own_keys(tmp_path):
+    """task.segmentation.<segmenter> sections sit side by side (Table I runs all three); the chosen one is built."""
+    cfg = parse(compose_train(["task=mmdip", "+task.segmentation.fcn.width=8", "+task.segmentation.unet.ngf=4",
+                               f"run_dir={tmp_path}"]))[0].segmentation
+    assert cfg.model == "erfnet" and cfg.segmenter_keys == {"fcn": {"width": 8}, "unet": {"ngf": 4}}
+    fcn = SegmentationTask(dataclasses.replace(cfg, model="fcn"), 8, [1 / 8] * 8).seg
+    assert isinstance(fcn, FCN8s) and fcn.score5.in_channels == 16 * 8
+    unet = SegmentationTask(dataclasses.replace(cfg, model="unet"), 8, [1 / 8] * 8).seg
+    assert sum(p.numel() for p in unet.parameters()) < sum(p.numel() for p in build_segmenter(
+        dataclasses.replace(cfg, model="unet", segmenter_keys={}), 8).parameters())
 
 
 def eq5_ranks_by_hand(q_bow, q_spm, r_bow, r_spm, alpha, tol=1e-5):
@@ -110,7 +146,7 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread, monkeypatch)
     rng = np.random.default_rng(0)
     for i in range(2):
         cv2.imwrite(str(ec / f"{i}.png"), rng.integers(0, 255, (60, 240, 3), np.uint8))
-    ec_cfg = compose_train([*TINY_MMDIP, "dataset.name=emptycities", f"dataset.root={ec}", "dataset.split=null"])
+    ec_cfg = compose_evaluate(["ckpt=x", "dataset=emptycities", f"dataset.root={ec}", "device=cpu"])
     scores = evaluate(ec_cfg, run / "phase2" / "best.pt", tmp_path / "ec.json")
     assert {"L1", "L2", "PSNR", "SSIM", "num_images"} <= set(scores) and scores["num_images"] == 2
     seg = evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase1" / "best.pt")

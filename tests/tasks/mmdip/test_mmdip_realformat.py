@@ -17,11 +17,18 @@ from geoloc.tasks.mmdip.datasets import (
     EmptyCitiesDataset,
 )
 from geoloc.tasks.mmdip.pipeline import load_task
-from geoloc.tasks.mmdip.protocol import FROM_GALLERY, FROM_TRAIN, place_protocol
+from geoloc.tasks.mmdip.config import DynamicDataConfig
+from geoloc.tasks.mmdip.protocol import FROM_GALLERY, FROM_TRAIN
+from geoloc.tasks.mmdip.readers import build_reader
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval
 
 from conftest import REPO, compose_evaluate, compose_train
 from helpers.dynamic_data import TINY_MMDIP, evaluate, write_tiny_dynamic
+
+def place_protocol(name, root, split, image_size):
+    """The place protocol of the reader `name` registers, on `split` of `root`."""
+    return build_reader(DynamicDataConfig(name=name, root=str(root), image_size=list(image_size))).place_protocol(split)
+
 
 _spec = importlib.util.spec_from_file_location("dynamic_to_panels", REPO / "data_prep" / "dynamic_to_panels.py")
 to_panels = importlib.util.module_from_spec(_spec)
@@ -69,7 +76,8 @@ def test_place_protocol_pairs_each_dynamic_view_with_the_static_view_of_its_plac
     dyn = place_protocol("dynamic", root, "val", (64, 64))
     assert sorted(int(r["place"]) for r in dyn.references) == sorted(int(q["place"]) for q in dyn.queries)
     assert all(bool(q["is_query"]) for q in dyn.queries) and not any(bool(r["is_query"]) for r in dyn.references)
-    with pytest.raises(ValueError, match="no place protocol for dataset 'cvusa'"):
+    with pytest.raises(ConfigError, match=r"dataset.name='cvusa' is not a known mmdip_dataset; choose one of "
+                                          r"\['carla4', 'dynamic', 'emptycities'"):
         place_protocol("cvusa", root, "val", (64, 64))
 
 

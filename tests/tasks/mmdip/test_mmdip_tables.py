@@ -17,8 +17,8 @@ def test_tables_one_to_four_and_figures(tmp_path):
         root = write_tiny_dynamic(tmp_path / "dyn", n_train=3, n_val=3)
         out = tmp_path / "tables"
         overrides = [o for o in TINY_MMDIP if o != "task=mmdip"]
-        tables.main(["--out", str(out), f"dataset.root={root}", "task.segmentation.unet_num_downs=3",
-                     "task.segmentation.unet_ngf=8", "task.segmentation.fcn_width=8", *overrides])
+        tables.main(["--out", str(out), f"dataset.root={root}", "+task.segmentation.unet.num_downs=3",
+                     "+task.segmentation.unet.ngf=8", "+task.segmentation.fcn.width=8", *overrides])
     finally:
         torch.set_num_threads(threads)
     for n in (1, 2, 3, 4):

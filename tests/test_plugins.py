@@ -67,7 +67,8 @@ def plugin_cfg(root: Path, run_dir: Path, *extra):
                                              ("mmdip_dataset", "dataset", "image_folders"),
                                              ("task", "task", "fit_mean")])
 def test_each_kind_is_found_from_its_yaml_and_module(kind, group, name, tmp_path):
-    cfg = compose_train([SEARCHPATH, f"{group}={name}", f"dataset.root={tmp_path}", f"run_dir={tmp_path}"])
+    data_root = [] if kind == "task" else [f"dataset.root={tmp_path}"]  # a plug-in task brings no dataset group
+    cfg = compose_train([SEARCHPATH, f"{group}={name}", *data_root, f"run_dir={tmp_path}"])
     assert cfg[group].name == name and cfg[group].module == f"plugins.{name}"
     registry.import_module(cfg[group].module)
     assert name in registry.names(kind)

@@ -14,6 +14,7 @@ import torch
 from omegaconf import DictConfig
 
 import geoloc.losses  # noqa: F401  (declares the loss kind and registers its built-ins)
+import geoloc.models.optim  # noqa: F401  (the optimizer kind)
 from geoloc import registry
 from geoloc.data import samplers  # noqa: F401  (the sampler kind)
 from geoloc.engine import Task
@@ -23,7 +24,6 @@ from geoloc.eval.descriptors import check_descriptors
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
-from geoloc.models import optim  # noqa: F401  (the optimizer kind)
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 
 # What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):

@@ -30,8 +30,8 @@ from geoloc.losses.perceptual import VGGPerceptualLoss
 from geoloc.tasks.mmdip.config import TranslationConfig
 from geoloc.tasks.mmdip.networks import to_signed
 
-registry.declare("generator_loss", section="task.translation.generator_loss", runtime=RUNTIME)
 RUNTIME = ("perceptual_weights", "perceptual_layers", "training")
+registry.declare("generator_loss", section="task.translation.generator_loss", runtime=RUNTIME)
 
 
 class WeightedGeneratorLoss(nn.Module):

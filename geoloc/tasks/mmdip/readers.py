@@ -28,8 +28,8 @@ from geoloc.tasks.mmdip.datasets import (CarlaFourPanelDataset, DynamicDataset, 
                                          class_fractions, dynamic_label_maps)
 from geoloc.tasks.mmdip.protocol import FROM_TRAIN, TRAIN_SPLIT, PlaceProtocol, each_file_a_place
 
-registry.declare("mmdip_dataset", section="dataset", runtime=RUNTIME)
 RUNTIME = ("root", "image_size", "augment", "check_files")
+registry.declare("mmdip_dataset", section="dataset", runtime=RUNTIME)
 
 
 class DynamicLayout:

@@ -65,12 +65,17 @@ def write_four_panel(path: Path, h=16, w=24, seed=0, bad_tag=None):
 
 
 def evaluate(cfg, ckpt, metrics_out=None) -> dict:
-    """mmdip.evaluate(cfg, state) with cfg.ckpt / cfg.metrics_out set, as geoloc.launch.run.evaluate calls it."""
+    """mmdip.evaluate(cfg) with cfg.ckpt set, its metrics written to `metrics_out` as geoloc.launch.run.evaluate
+    writes them (without the launcher's run-dir claim: `cfg` is a training config here)."""
+    from geoloc.launch.run import write_metrics
     from omegaconf import open_dict
 
     with open_dict(cfg):
-        cfg.ckpt, cfg.metrics_out = str(ckpt), str(metrics_out) if metrics_out else None
-    return mmdip.evaluate(cfg)
+        cfg.ckpt = str(ckpt)
+    metrics = mmdip.evaluate(cfg)
+    if metrics_out:
+        write_metrics(Path(metrics_out), metrics, overwrite=False)
+    return metrics
 
 
 TINY_MMDIP = [

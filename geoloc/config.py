@@ -34,6 +34,11 @@ def checked(section: DictConfig | dict | None, schema: type[T], where: str) -> T
         raise ConfigError(f"bad '{where}' config: {err}") from None
 
 
+def defaults_of(schema: type) -> dict[str, Any]:
+    """Every field of dataclass `schema` at its default, as plain config values (a config node's defaults)."""
+    return OmegaConf.to_container(OmegaConf.structured(schema), resolve=False)
+
+
 def to_yaml(cfg: Any) -> str:
     return OmegaConf.to_yaml(cfg, resolve=True)
 

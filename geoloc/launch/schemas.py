@@ -10,63 +10,41 @@ Each option file under conf/ extends one of these nodes and says only what it ch
     width: 0.125
 
 The nodes are stored in Hydra's ConfigStore under `schema/<section>/<name>`:
-- `schema/<group>/<factory>` for every registered component (backbone, head, loss, optim, sampler): the factory's
-  keyword arguments with their defaults, minus the run-time arguments geoloc passes itself;
-- `schema/dataset/<reader>` for every registered cross-view reader: CrossViewDataConfig's fields (the keys every
-  dataset shares) and the reader's own keyword arguments;
-- `schema/<name>` for the fixed sections: train and evaluate (the entry points' own keys: geoloc.config),
-  trainer (TrainerConfig), model (CrossViewModelConfig), gallery (GalleryConfig).
+- `schema/<name>` for the entry points' own sections: train and evaluate (geoloc.config) and trainer
+  (TrainerConfig);
+- every node a registered task gives from its `config_nodes()` (group path -> node): the cross-view task's
+  components (`schema/backbone/vgg16`: the factory's keyword arguments with their defaults, minus the run-time
+  arguments geoloc passes itself), readers (`schema/dataset/cvusa`: the keys every dataset shares, then the
+  reader's own), model and gallery; MMDIP's `schema/task/mmdip` and its readers. A node's defaults come from
+  geoloc.config.defaults_of (a dataclass) and registry.with_defaults (a factory's signature).
 A key missing from a node cannot be set from the command line without `+`, so every key a user may set is in the
 composed config, at the value that runs.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 from hydra.core.config_store import ConfigStore
-from omegaconf import OmegaConf
 
 from geoloc import registry
-
-
-
-def dataclass_defaults(schema: type) -> dict[str, Any]:
-    """Every field of a dataclass at its default, as plain config values."""
-    return OmegaConf.to_container(OmegaConf.structured(schema), resolve=False)
-
-
-def factory_defaults(kind: str, name: str) -> dict[str, Any]:
-    """{"name": name, **the factory's config keys at their defaults} of registered component `name`."""
-    return registry.with_defaults(kind, {"name": name})
-
-
-def reader_defaults(name: str) -> dict[str, Any]:
-    """The dataset node of cross-view reader `name`: the shared keys, then the reader's own."""
-    from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-
-    return {**dataclass_defaults(CrossViewDataConfig), **factory_defaults("dataset", name)}
+from geoloc.config import defaults_of
 
 
 def register() -> None:
     """Store every node in Hydra's ConfigStore (idempotent: a second call stores the same nodes again)."""
+    import geoloc.tasks  # noqa: F401  (declares the task kind)
     from geoloc.config import EvaluateKeys, TrainKeys
     from geoloc.engine import TrainerConfig
-    from geoloc.models.crossview import CrossViewModelConfig
-    from geoloc.tasks.crossview.config import COMPONENTS
-    from geoloc.tasks.crossview.gallery import GalleryConfig
 
-    store = ConfigStore.instance()
-    for kind in COMPONENTS:
-        for name in registry.names(kind):
-            store.store(group=f"schema/{registry.section(kind)}", name=name, node=factory_defaults(kind, name))
-    for name in registry.names("dataset"):
-        store.store(group="schema/dataset", name=name, node=reader_defaults(name))
-    for section, schema in (("train", TrainKeys), ("evaluate", EvaluateKeys), ("trainer", TrainerConfig),
-                            ("model", CrossViewModelConfig), ("gallery", GalleryConfig)):
+    for section, schema in (("train", TrainKeys), ("evaluate", EvaluateKeys), ("trainer", TrainerConfig)):
         store_dataclass(section, schema)
+    store = ConfigStore.instance()
+    for name in registry.names("task"):
+        nodes = getattr(registry.lookup("task", name), "config_nodes", None)
+        for path, node in (nodes() if nodes else {}).items():
+            group, _, option = f"schema/{path}".rpartition("/")
+            store.store(group=group, name=option, node=node)
 
 
 def store_dataclass(name: str, schema: type) -> None:
     """Store dataclass `schema`'s defaults as the node `schema/<name>` (an app's entry point stores its own)."""
-    ConfigStore.instance().store(group="schema", name=name, node=dataclass_defaults(schema))
+    ConfigStore.instance().store(group="schema", name=name, node=defaults_of(schema))

@@ -4,13 +4,14 @@
 RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc/launch/resume.py). The apps
 (localize.py, `geoloc serve`, export.py) use what this package exports and nothing deeper: `CrossViewEncoder` (a
 checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and the places of a
-saved gallery (`read_places`, `POSITION_KEYS`). The package registers itself as the task `crossview`.
+saved gallery (`read_places`, `POSITION_KEYS`). `config_nodes()` gives
+the defaults conf/ extends. The package registers itself as the task `crossview`.
 """
 
 import sys
 
 from geoloc import registry
-from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config
+from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
 from geoloc.tasks.crossview.localization import LocalizationResult
 from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
@@ -19,4 +20,4 @@ from geoloc.tasks.crossview.run import evaluate, train
 registry.register("task", "crossview", sys.modules[__name__])
 
 __all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE",
-           "canonical_config", "evaluate", "read_places", "train"]
+           "canonical_config", "config_nodes", "evaluate", "read_places", "train"]

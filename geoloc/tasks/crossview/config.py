@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field
 from omegaconf import DictConfig, OmegaConf
 
 from geoloc import registry
-from geoloc.config import ConfigError, EvaluateKeys, TrainKeys, checked, to_yaml, top_level
+from geoloc.config import ConfigError, EvaluateKeys, TrainKeys, checked, defaults_of, to_yaml, top_level
 from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
@@ -34,6 +34,18 @@ TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
 # trained: they do not change what is measured.
 EVALUATION_KEYS = ("name", "module", "root", "split", "check_files", "max_val", "fov", "random_heading",
                    "heading_steps")
+
+
+def config_nodes() -> dict[str, dict]:
+    """The defaults conf/ extends (geoloc/launch/schemas.py), from their one home: `backbone/vgg16` ... for every
+    registered component (its factory's signature), `dataset/<reader>` for every reader (the shared keys, then the
+    reader's own), `model` and `gallery` (their dataclasses)."""
+    nodes = {f"{registry.section(kind)}/{name}": registry.with_defaults(kind, {"name": name})
+             for kind in COMPONENTS for name in registry.names(kind)}
+    shared = defaults_of(CrossViewDataConfig)
+    nodes.update({f"dataset/{name}": {**shared, **registry.with_defaults("dataset", {"name": name})}
+                  for name in registry.names("dataset")})
+    return {**nodes, "model": defaults_of(CrossViewModelConfig), "gallery": defaults_of(GalleryConfig)}
 
 
 @dataclass(frozen=True)

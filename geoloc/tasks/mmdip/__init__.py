@@ -2,16 +2,17 @@
 Perception Space", Wu, Wang, Sun), as a task on the geoloc engine. See docs/mmdip.md.
 
 `train(cfg, run_dir)` runs phase 1 -> phase 2 -> VPR evaluation; `evaluate(cfg, state)` scores the
-checkpoint cfg.ckpt (recall on `dataset=dynamic`, L1/L2/PSNR/SSIM on `dataset=emptycities`). The package registers
-itself as the task `mmdip`; its modules declare the kinds only it builds: `segmenter` (networks.py),
-`generator_loss` (generator_loss.py) and `mmdip_dataset` (readers.py).
+checkpoint cfg.ckpt (recall on `dataset=dynamic`, L1/L2/PSNR/SSIM on `dataset=emptycities`); `config_nodes()`
+gives the defaults conf/ extends. The package registers itself as the task `mmdip`; its modules declare the kinds
+only it builds: `segmenter` (networks.py), `generator_loss` (generator_loss.py) and `mmdip_dataset` (readers.py).
 """
 
 import sys
 
 from geoloc import registry
+from geoloc.tasks.mmdip.config import config_nodes
 from geoloc.tasks.mmdip.pipeline import evaluate, train
 
 registry.register("task", "mmdip", sys.modules[__name__])
 
-__all__ = ["evaluate", "train"]
+__all__ = ["config_nodes", "evaluate", "train"]

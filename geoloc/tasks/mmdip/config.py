@@ -16,19 +16,20 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import ConfigError, checked
+from geoloc.config import ConfigError, checked, defaults_of
 
 VARIANTS = ("ssggnet", "ssggnet_sm", "pix2pix", "mgan")
 
 
 @dataclass
 class SegmentationConfig:
-    """Phase 1: the static-segmentation network alone (paper: ERFNet, Adam lr 2e-3, batch 1)."""
+    """Phase 1: the static-segmentation network alone. The defaults are CPU-sized (experiment=paper_mmdip: ERFNet,
+    Adam lr 2e-3, batch 1)."""
 
     model: str = "erfnet"  # a registered segmenter: erfnet | fcn | unet (the Table I baselines) | a plug-in's
     module: str | None = None  # a plug-in segmenter's module (docs/extending.md)
-    epochs: int = 20
-    batch_size: int = 1
+    epochs: int = 6  # paper_mmdip: 100 (geoloc's choice; the paper gives none)
+    batch_size: int = 4  # paper: 1
     lr: float = 2e-3
     class_weight_formula: str = "paper"  # paper (eq. 1) | authors (1/ln(100 r + 1.02))
     # {segmenter: its own keys}, written task.segmentation.<segmenter>.<key> (e.g. unet.num_downs); task_config()
@@ -42,10 +43,11 @@ class SegmentationConfig:
 
 @dataclass
 class TranslationConfig:
-    """Phase 2: segmentation + U-Net generator + PatchGAN, end to end (paper: lrs 1e-4 / 2e-3 / 4e-3, batch 4)."""
+    """Phase 2: segmentation + U-Net generator + PatchGAN, end to end (paper: lrs 1e-4 / 2e-3 / 4e-3, batch 4). The
+    network sizes are CPU-sized (experiment=paper_mmdip: the pix2pix U-Net 256, ngf = ndf = 64)."""
 
     variant: str = "ssggnet"  # ssggnet (gray x K + S) | ssggnet_sm (gray x K + onehot(M)) | pix2pix | mgan
-    epochs: int = 20
+    epochs: int = 6  # paper_mmdip: 100
     batch_size: int = 4
     lr_seg: float = 1e-4
     lr_g: float = 2e-3
@@ -56,9 +58,9 @@ class TranslationConfig:
     lambda_seg: float = 1.0  # weighted cross-entropy keeps the segmentation static while G trains through it
     perceptual_weights: str = "none"  # imagenet (torch hub cache) | /path/to/vgg16.pth | none (random, CPU smoke)
     perceptual_layers: list[str] = field(default_factory=lambda: ["relu1_2", "relu2_2", "relu3_3"])
-    num_downs: int = 7  # U-Net depth: 8 for 256 x 256 as in pix2pix
-    ngf: int = 64
-    ndf: int = 64
+    num_downs: int = 5  # U-Net depth; pix2pix at 256 x 256: 8
+    ngf: int = 32  # pix2pix: 64
+    ndf: int = 32  # pix2pix: 64
     d_layers: int = 3
     init_from_phase1: bool = True
 
@@ -130,6 +132,20 @@ class DynamicDataConfig:
 
 SEGMENTATION_KEYS = tuple(f.name for f in fields(SegmentationConfig) if f.name != "segmenter_keys")
 SHARED_DATA_KEYS = tuple(f.name for f in fields(DynamicDataConfig) if f.name != "reader_keys")
+
+
+def config_nodes() -> dict[str, dict]:
+    """The defaults conf/ extends (geoloc/launch/schemas.py), from their one home: `task/mmdip` (MMDIPConfig) and
+    `dataset/<reader>` for every registered reader (DynamicDataConfig's shared keys, then the reader's own)."""
+    from geoloc import registry
+    from geoloc.tasks.mmdip import readers  # noqa: F401  (declares the mmdip_dataset kind)
+
+    task = defaults_of(MMDIPConfig)
+    del task["segmentation"]["segmenter_keys"]  # written task.segmentation.<segmenter>.<key>
+    shared = {k: v for k, v in defaults_of(DynamicDataConfig).items() if k != "reader_keys"}
+    return {"task/mmdip": task, **{f"dataset/{name}": {**shared, **registry.with_defaults("mmdip_dataset",
+                                                                                          {"name": name})}
+                                   for name in registry.names("mmdip_dataset")}}
 
 
 def _plain(section) -> dict:

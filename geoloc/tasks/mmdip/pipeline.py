@@ -45,7 +45,7 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
     task_cfg = task_config(cfg.task)
     data_cfg = data_config(cfg.dataset)
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
-    check_parts(task_cfg, data_cfg)
+    check_parts(task_cfg, data_cfg, training=True)
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
     if cfg.get("ckpt") or cfg.get("init_from"):
@@ -55,10 +55,10 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
     return task_cfg, data_cfg, trainer_cfg
 
 
-def check_parts(task_cfg: MMDIPConfig, data_cfg: DynamicDataConfig) -> None:
+def check_parts(task_cfg: MMDIPConfig, data_cfg: DynamicDataConfig, training: bool = False) -> None:
     check_segmenters(task_cfg.segmentation)
     check_generator_loss(task_cfg.translation)
-    check_reader(data_cfg)
+    check_reader(data_cfg, training)
 
 
 def phase_trainer(trainer_cfg: TrainerConfig, epochs: int, run_dir: Path, yaml: str) -> Trainer:

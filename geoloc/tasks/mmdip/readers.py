@@ -117,13 +117,19 @@ def emptycities(root: str | None, image_size) -> PanelFolder:
                                                                                                       image_size))
 
 
+emptycities.evaluation_only = True  # a reader without labels says so: training on it is refused at start-up
+
+
 def reader_section(cfg: DynamicDataConfig) -> dict:
     return {"name": cfg.name, "module": cfg.module, **cfg.reader_keys}
 
 
-def check_reader(cfg: DynamicDataConfig) -> None:
-    """The reader's name and own keys against the registry, without reading or generating anything."""
+def check_reader(cfg: DynamicDataConfig, training: bool = False) -> None:
+    """The reader's name and own keys against the registry, without reading or generating anything; for training,
+    a reader marked `evaluation_only` (no labels) is refused."""
     registry.check("mmdip_dataset", reader_section(cfg))
+    if training and getattr(registry.find("mmdip_dataset", reader_section(cfg)), "evaluation_only", False):
+        raise ConfigError(f"dataset={cfg.name} has no labels: it is for evaluation only (evaluate.py ckpt=...)")
 
 
 def build_reader(cfg: DynamicDataConfig):

@@ -10,7 +10,7 @@ only it builds: `segmenter` (networks.py), `generator_loss` (generator_loss.py) 
 import sys
 
 from geoloc import registry
-from geoloc.tasks.mmdip.config import config_nodes
+from geoloc.tasks.mmdip.config_nodes import config_nodes
 from geoloc.tasks.mmdip.pipeline import evaluate, train
 
 registry.register("task", "mmdip", sys.modules[__name__])

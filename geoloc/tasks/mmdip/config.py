@@ -16,7 +16,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import ConfigError, checked, defaults_of
+from geoloc.config import ConfigError, checked
 
 VARIANTS = ("ssggnet", "ssggnet_sm", "pix2pix", "mgan")
 
@@ -132,20 +132,6 @@ class DynamicDataConfig:
 
 SEGMENTATION_KEYS = tuple(f.name for f in fields(SegmentationConfig) if f.name != "segmenter_keys")
 SHARED_DATA_KEYS = tuple(f.name for f in fields(DynamicDataConfig) if f.name != "reader_keys")
-
-
-def config_nodes() -> dict[str, dict]:
-    """The defaults conf/ extends (geoloc/launch/schemas.py), from their one home: `task/mmdip` (MMDIPConfig) and
-    `dataset/<reader>` for every registered reader (DynamicDataConfig's shared keys, then the reader's own)."""
-    from geoloc import registry
-    from geoloc.tasks.mmdip import readers  # noqa: F401  (declares the mmdip_dataset kind)
-
-    task = defaults_of(MMDIPConfig)
-    del task["segmentation"]["segmenter_keys"]  # written task.segmentation.<segmenter>.<key>
-    shared = {k: v for k, v in defaults_of(DynamicDataConfig).items() if k != "reader_keys"}
-    return {"task/mmdip": task, **{f"dataset/{name}": {**shared, **registry.with_defaults("mmdip_dataset",
-                                                                                          {"name": name})}
-                                   for name in registry.names("mmdip_dataset")}}
 
 
 def _plain(section) -> dict:

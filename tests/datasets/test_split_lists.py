@@ -93,7 +93,8 @@ def test_dynamic_split_csv_with_a_mark_reads_and_a_repeat_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"val.csv:3: sample 0000000 is listed again \(first on line 2\)"):
         DynamicDataset(tmp_path, "val", check="off")
     _dynamic_csv(tmp_path, b"name,place\n0000000,3\n")
-    with pytest.raises(ValueError, match=r"val.csv: the first line must name the columns .* missing \['sample', 'role'\]"):
+    with pytest.raises(ValueError, match=r"val.csv: the first line must name the columns .* missing "
+                                         r"\['sample', 'role'\]"):
         DynamicDataset(tmp_path, "val", check="off")
 
 

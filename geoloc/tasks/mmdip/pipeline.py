@@ -189,8 +189,8 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
     + num_queries, the BoW / SPM / dynamic-BoW rows, and L1 / L2 / PSNR / SSIM of the recovered queries against
     their static views; artefacts are written to vpr_dir(cfg.run_dir) (a temporary folder, removed, when the
     config has no run dir) and reused, read only, from the checkpoint's training run (training_run). Phase 1: PA,
-    MPA, MIoU, FWIoU and the per-class IoU (needs labels). Each prints its table. `cfg.ckpt` is the checkpoint (`state` its loaded contents, when the caller has them); the
-    launcher writes the metrics to `metrics_out`."""
+    MPA, MIoU, FWIoU and the per-class IoU (needs labels). Each prints its table. `cfg.ckpt` is the checkpoint
+    (`state` its loaded contents, when the caller has them); the launcher writes the metrics to `metrics_out`."""
     ckpt_path = Path(cfg.ckpt)
     task, task_cfg, stored = load_task(ckpt_path, state)
     data_cfg = data_config(_merged_dataset(stored.dataset, cfg.get("dataset")))

@@ -40,8 +40,9 @@ class PhaseNetwork:
 def phase_networks(task_cfg: MMDIPConfig, size: tuple[int, int]) -> list[PhaseNetwork]:
     """The networks phases 1 and 2 train (phase 2 also trains phase 1's segmenter, at phase 1's size)."""
     seg, tr, k = task_cfg.segmentation, task_cfg.translation, task_cfg.num_classes
-    seg_keys = {"task.segmentation.model": seg.model, **{f"task.segmentation.{seg.model}.{key}": value
-                                                         for key, value in seg.segmenter_keys.get(seg.model, {}).items()}}
+    own = seg.segmenter_keys.get(seg.model, {})
+    seg_keys = {"task.segmentation.model": seg.model,
+                **{f"task.segmentation.{seg.model}.{key}": value for key, value in own.items()}}
     return [
         PhaseNetwork("phase 1's segmenter", seg_keys, lambda: build_segmenter(seg, k), 3,
                      min(seg.batch_size, tr.batch_size)),

@@ -8,10 +8,11 @@ write it (docs/datasets.md). A query and its aerial tile share the position (the
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
+
+from geoloc.data.list_files import csv_rows, refuse_repeats
 
 POSITIONS_FILE = "positions.csv"
 HEADERS = {("panorama", "x_m", "y_m"): "xy", ("panorama", "lat", "lon"): "latlon"}
@@ -31,18 +32,18 @@ def read_positions(root: Path, queries: list[Path]) -> tuple[str, np.ndarray] | 
     path = Path(root) / POSITIONS_FILE
     if not path.is_file():
         return None
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
-    kind = HEADERS.get(tuple(c.strip() for c in rows[0])) if rows else None
+    rows = csv_rows(path, "positions file")
+    kind = HEADERS.get(tuple(c.strip() for c in rows[0][1])) if rows else None
     if kind is None:
         raise ValueError(f"{path}: the first line must be one of "
-                         f"{[','.join(h) for h in HEADERS]}, got {','.join(rows[0]) if rows else 'an empty file'!r}")
+                         f"{[','.join(h) for h in HEADERS]}, got {','.join(rows[0][1]) if rows else 'an empty file'!r}")
     table = {}
-    for line, row in enumerate(rows[1:], start=2):
+    for line, row in rows[1:]:
         try:
             table[row[0].strip()] = (float(row[1]), float(row[2]))
         except (IndexError, ValueError) as err:
             raise ValueError(f"{path} line {line}: expected 'panorama,number,number', got {','.join(row)!r}") from err
+    refuse_repeats(path, [(row[0].strip(), line) for line, row in rows[1:]], "panorama")
     out = np.empty((len(queries), 2), np.float64)
     for i, q in enumerate(queries):
         key = Path(q).relative_to(root).as_posix()

@@ -6,9 +6,9 @@ optional `positions.csv` (geoloc's own, positions.py) says where each panorama w
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
+from geoloc.data.list_files import csv_rows, refuse_repeats
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.datasets.common import pairs_split, require_root, tile_frame
 from geoloc.data.positions import read_positions
@@ -29,17 +29,10 @@ def cvusa_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
     if not csv_path.is_file():
         raise FileNotFoundError(f"CVUSA split file {csv_path} not found. dataset.root must be the CVUSA folder "
                                 f"holding bingmap/, streetview/ and splits/ (root={root}).")
-    pairs = []
-    try:
-        with open(csv_path, newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a BOM is not part of a path
-            for line_no, row in enumerate(csv.reader(f), start=1):
-                if not row:
-                    continue
-                aerial, street = _cvusa_row(row, f"{csv_path}:{line_no}")
-                pairs.append((root / street, root / aerial))
-    except (UnicodeDecodeError, csv.Error) as err:  # a binary or mangled file
-        raise ValueError(f"CVUSA split file {csv_path} is not a readable csv ({err}); restore it from the "
-                         "dataset release") from err
+    rows = [(k, _cvusa_row(row, f"{csv_path}:{k}")) for k, row in csv_rows(csv_path, "CVUSA split file")]
+    refuse_repeats(csv_path, [(street, k) for k, (_, street) in rows], "panorama")
+    refuse_repeats(csv_path, [(aerial, k) for k, (aerial, _) in rows], "aerial image")
+    pairs = [(root / street, root / aerial) for _, (aerial, street) in rows]
     if not pairs:
         raise ValueError(f"CVUSA split file {csv_path} has no rows")
     return pairs

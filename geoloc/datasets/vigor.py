@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geoloc.data.list_files import list_lines, refuse_repeats
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.data.tile_offsets import OFFSETS_FILE, read_offsets
 from geoloc.datasets.common import tile_frame, with_view
@@ -83,8 +84,6 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
                 f"holding <City>/panorama, <City>/satellite and splits/<City>/; cities found there: {found}.")
         index = {}
         for name, line_no in _satellite_list(city_dir / "satellite_list.txt"):
-            if name in index:
-                raise ValueError(f"{city_dir / 'satellite_list.txt'}:{line_no}: satellite {name} is listed twice")
             index[name] = len(references)
             references.append(root / city / "satellite" / name)
             ref_latlon.append(satellite_latlon(name, f"{city_dir / 'satellite_list.txt'}:{line_no}"))
@@ -166,26 +165,26 @@ def _satellite_list(path: Path):
     if not path.is_file():
         raise FileNotFoundError(f"VIGOR satellite list {path} not found; every splits/<City>/ folder of the "
                                 "release holds one")
-    out = [(line.strip(), k) for k, line in enumerate(path.read_text().splitlines(), 1) if line.strip()]
+    out = [(line, k) for k, line in list_lines(path, "VIGOR satellite list")]
     if not out:
         raise ValueError(f"VIGOR satellite list {path} is empty")
+    refuse_repeats(path, out, "satellite")
     return out
 
 
-def _split_lines(path: Path):
+def _split_lines(path: Path) -> list:
     """-> (panorama name, [positive, 3 semi-positives], 4 x [north, east] pixel offsets, line number) per non-empty
-    line."""
+    line; a panorama is listed once."""
     if not path.is_file():
         raise FileNotFoundError(f"VIGOR split file {path} not found (same_area reads "
                                 "same_area_balanced_{train,test}.txt, cross_area pano_label_balanced.txt; "
                                 f"SliceMatch's corrected folder the same names ending in {CORRECTED}.txt)")
-    for k, line in enumerate(path.read_text().splitlines(), 1):
+    out = []
+    for k, line in list_lines(path, "VIGOR split file"):
         fields = line.split()
-        if not fields:
-            continue
         if len(fields) != FIELDS:
             raise ValueError(f"{path}:{k}: expected {FIELDS} space-separated fields (panorama, then 4 x "
-                             f"(satellite, two pixel offsets)), got {len(fields)}: {line.strip()[:120]!r}")
+                             f"(satellite, two pixel offsets)), got {len(fields)}: {line[:120]!r}")
         offsets = []
         for j in (2, 3, 5, 6, 8, 9, 11, 12):
             try:
@@ -194,7 +193,9 @@ def _split_lines(path: Path):
                 raise ValueError(f"{path}:{k}: field {j + 1} should be a pixel offset, got {fields[j]!r}") from None
         if not np.isfinite(offsets).all():
             raise ValueError(f"{path}:{k}: the pixel offsets must be finite numbers, got {offsets}")
-        yield fields[0], fields[1::3], [offsets[i:i + 2] for i in range(0, 8, 2)], k
+        out.append((fields[0], fields[1::3], [offsets[i:i + 2] for i in range(0, 8, 2)], k))
+    refuse_repeats(path, [(pano, k) for pano, _, _, k in out], "panorama")
+    return out
 
 
 def _check_choice(key: str, value, choices) -> None:

@@ -1,5 +1,6 @@
 """export.py format=onnx: the two encoders run in onnxruntime at any batch size and give torch's descriptors; the
-JSON's shapes are the ones the files take; existing files, other formats and other tasks are refused."""
+JSON's shapes are the ones the files take; existing files, other formats, other tasks and opsets torch does not
+write are refused, and the opset asked for is the one written."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from conftest import CONF, TINY, compose_train
 from helpers.crossview_runs import task_of
 
 ort = pytest.importorskip("onnxruntime")
-pytest.importorskip("onnx")
+onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxscript")
 
 
@@ -149,3 +150,45 @@ def test_a_failed_export_leaves_no_partial_file(tmp_path, monkeypatch):
         export(compose_export([f"ckpt={tmp_path / 'best.pt'}"]))
     assert calls == ["query.onnx", "reference.onnx"]
     assert not (tmp_path / "best_onnx").exists()
+
+
+@pytest.mark.parametrize("opset", ["1", "17", "99", "abc", "18.5"])
+def test_an_opset_torch_does_not_write_is_refused_before_anything(tmp_path, opset):
+    """torch.onnx writes opsets from torchlib's to its newest; asked for another, it printed onnx's converter
+    traceback and wrote its own opset. The range comes from the installed torch, and the error names it."""
+    from geoloc.apps.export.onnx_export import supported_opsets
+
+    span = supported_opsets()
+    assert span is not None and span.start <= 20 < span.stop  # torch 2.14: 18..23, default 20
+    with pytest.raises(ConfigError, match=rf"opset='?{opset}'? .*{span.start}\.\.{span.stop - 1} \(torch "):
+        export(compose_export([f"ckpt={tmp_path / 'none.pt'}", f"opset={opset}", f"out={tmp_path / 'onnx'}"]))
+    assert not (tmp_path / "onnx").exists()
+
+
+def test_the_opset_asked_for_is_the_one_written(tmp_path):
+    from geoloc.apps.export.onnx_export import supported_opsets
+
+    newest = supported_opsets()[-1]
+    write_checkpoint(tmp_path / "best.pt", ["dataset.alignment=polar"])
+    spec = export(compose_export([f"ckpt={tmp_path / 'best.pt'}", f"opset={newest}", f"out={tmp_path / 'onnx'}"]))
+    assert spec["opset"] == newest
+    for name in ("query.onnx", "reference.onnx"):
+        model = onnx.load(str(tmp_path / "onnx" / name))
+        assert {o.domain: o.version for o in model.opset_import}[""] == newest
+
+
+def test_a_file_written_at_another_opset_is_refused(tmp_path, monkeypatch):
+    """Should the exporter keep its own opset (as its version converter does when it fails), nothing is kept."""
+    from geoloc.apps.export import onnx_export
+
+    write_checkpoint(tmp_path / "best.pt", [])
+
+    def keeps_its_own(branch, example, path, opset):
+        path.write_bytes(b"an opset-18 file")
+        return 18
+
+    monkeypatch.setattr(onnx_export, "export_branch", keeps_its_own)
+    monkeypatch.setattr(onnx_export, "checked", lambda *args: None)
+    with pytest.raises(RuntimeError, match=r"query.onnx: torch.onnx wrote opset 18, not the opset=21 asked for"):
+        export(compose_export([f"ckpt={tmp_path / 'best.pt'}", "opset=21", f"out={tmp_path / 'onnx'}"]))
+    assert not (tmp_path / "onnx").exists()

@@ -117,7 +117,7 @@ def _break(root: Path, file: str, text: str):
     (lambda r: _break(r, "same_area_balanced_test.txt", EXAMPLE_LINE.replace("23.0", "north") + "\n"), ValueError,
      r":1: field 3 should be a pixel offset, got 'north'"),
     (lambda r: _break(r, "satellite_list.txt", "satellite_1.0_2.0.png\nsatellite_1.0_2.0.png\n"), ValueError,
-     r"satellite_list.txt:2: satellite satellite_1.0_2.0.png is listed twice"),
+     r"satellite_list.txt:2: satellite satellite_1.0_2.0.png is listed again \(first on line 1\)"),
     (lambda r: _break(r, "satellite_list.txt", "sat_1.0.png\n"), ValueError,
      r"satellite_list.txt:1: satellite name 'sat_1.0.png' is not 'satellite_<lat>_<lon>.png'"),
 ])

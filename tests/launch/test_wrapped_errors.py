@@ -54,7 +54,7 @@ def test_a_binary_split_file_is_named(tmp_path):
     (tmp_path / "splits").mkdir()
     csv = tmp_path / "splits" / "train-19zl.csv"
     csv.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe\x00garbage")
-    with pytest.raises(ValueError, match=rf"CVUSA split file {csv} is not a readable csv"):
+    with pytest.raises(ValueError, match=rf"CVUSA split file {csv} is not UTF-8 text"):
         cvusa_pairs(tmp_path, "train")
 
 

@@ -42,6 +42,7 @@ def export(cfg: DictConfig) -> dict:
         raise ConfigError(f"format={cfg.format} is not supported; export.py writes {', '.join(FORMATS)} "
                           f"(format=onnx)")
     require_packages()
+    opset = checked_opset(cfg.get("opset"))
     ckpt = Path(cfg.ckpt)
     out = Path(cfg.out) if cfg.get("out") else default_out(ckpt)
     if not cfg.get("overwrite", False):
@@ -51,7 +52,7 @@ def export(cfg: DictConfig) -> dict:
     for name in ("onnxscript", "onnx_ir"):
         logging.getLogger(name).setLevel(logging.WARNING)
     started = time.perf_counter()
-    spec = export_encoders(encoder, out, query_view=cfg.get("query_view"), opset=cfg.get("opset"))
+    spec = export_encoders(encoder, out, query_view=cfg.get("query_view"), opset=opset)
     spec["source"] = {"ckpt": str(ckpt), "epoch": encoder.epoch, "dataset": encoder.data.name}
     (out / SPEC_FILE).write_text(json.dumps(spec, indent=2) + "\n")
     sizes = ", ".join(f"{f} {(out / f).stat().st_size / 1e6:.1f} MB" for f in FILES.values())
@@ -76,6 +77,9 @@ def export_encoders(encoder: CrossViewEncoder, out: Path, query_view: str | None
             branch = encoder.branches[name]
             example = torch.randn(2, 3, *hw, generator=torch.Generator().manual_seed(0))
             used_opset = export_branch(branch, example, tmp / FILES[name], opset)
+            if opset is not None and used_opset != opset:
+                raise RuntimeError(f"{FILES[name]}: torch.onnx wrote opset {used_opset}, not the opset={opset} asked "
+                                   f"for; nothing was written. Choose an opset in {opset_text()}.")
             entry = branch_entry(FILES[name], described, hw, geometry, model_dim(branch, example))
             entry["checked_against_torch"] = checked(branch, tmp / FILES[name], example)
             spec[name] = entry
@@ -145,6 +149,39 @@ def export_branch(branch: torch.nn.Module, example: torch.Tensor, path: Path, op
                                 dynamo=True, dynamic_shapes=({0: torch.export.Dim("batch", min=1)},),
                                 opset_version=opset, external_data=big, verbose=False)
     return int(program.model.opset_imports[""])
+
+
+def supported_opsets() -> range | None:
+    """The ONNX opsets torch.onnx.export(dynamo=True) writes itself: from torchlib's (the opset its operators are
+    written in) to torch's newest. Below torchlib's it only tries onnx's version converter, which fails on these
+    graphs and keeps torchlib's opset; above torch's newest, onnx's converter refuses. None when this torch does not
+    say (the written opset is still checked)."""
+    try:
+        from torch.onnx import _constants
+        from torch.onnx._internal.exporter import _constants as exporter_constants
+
+        return range(int(exporter_constants.TORCHLIB_OPSET), int(_constants.ONNX_MAX_OPSET) + 1)
+    except (ImportError, AttributeError):
+        return None
+
+
+def opset_text() -> str:
+    span = supported_opsets()
+    return f"{span.start}..{span.stop - 1} (torch {torch.__version__})" if span else "the range torch.onnx supports"
+
+
+def checked_opset(opset) -> int | None:
+    """`opset=` as an int in supported_opsets(), or None for the exporter's default; anything else is refused."""
+    if opset is None:
+        return None
+    if isinstance(opset, bool) or not isinstance(opset, int):
+        raise ConfigError(f"opset={opset!r} is not an integer; export.py takes opset in {opset_text()}, or no opset "
+                          f"for the exporter's default")
+    span = supported_opsets()
+    if span is not None and opset not in span:
+        raise ConfigError(f"opset={opset} is outside the opsets torch.onnx writes, {opset_text()}; nothing was "
+                          f"exported. Pass opset=N with N in that range, or leave it out for the exporter's default.")
+    return opset
 
 
 def model_dim(branch: torch.nn.Module, example: torch.Tensor) -> int:

@@ -10,7 +10,6 @@ with a one-time message; wrong channel counts and labels outside the class set a
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import warnings
@@ -23,12 +22,14 @@ import torch
 from torch.utils.data import Dataset
 
 from geoloc.tasks.mmdip import label_census
+from geoloc.data.list_files import csv_rows, refuse_repeats
 from geoloc.data.validate import check_files, require_complete, run_checks
 from geoloc.engine.sampling import item_rng, split_key
 
 log = logging.getLogger(__name__)
 
 NUM_CLASSES = 8
+SPLIT_COLUMNS = ("sample", "place", "role")  # what the reader takes of a splits/<split>.csv row
 STATIC_CLASSES = ("None", "Buildings", "Fences", "Others", "Roadlines", "Road", "Sidewalk", "Vegetation")
 # CARLA 0.8 tag -> the paper's 8 classes (DESIGN.md); 4 (pedestrian) and 10 (vehicle) are the dynamic tags.
 CARLA_TO_STATIC = {0: 0, 1: 1, 2: 2, 3: 3, 4: 3, 5: 3, 10: 3, 11: 3, 12: 3, 6: 4, 7: 5, 8: 6, 9: 7}
@@ -129,8 +130,8 @@ class DynamicDataset(Dataset):
         if not csv_path.is_file():
             raise FileNotFoundError(f"{csv_path} not found: dataset.root must be a `dynamic` layout folder "
                                     f"(python data_prep/synthetic.py --layout dynamic --out DIR ...)")
-        with open(csv_path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if r["role"] in roles]
+        rows = _split_rows(csv_path)
+        rows = [r for r in rows if r["role"] in roles]
         if not rows:
             raise ValueError(f"{csv_path} has no rows with role in {tuple(roles)}")
         self.samples = [r["sample"] for r in rows]
@@ -164,6 +165,23 @@ class DynamicDataset(Dataset):
         flip = self.augment and rng.random() < 0.5
         return _sample(dynamic, static, mask, label, flip, index=index, place=int(self.places[index]),
                        is_query=bool(self.is_query[index]))
+
+
+def _split_rows(csv_path: Path) -> list[dict[str, str]]:
+    """The rows of a `dynamic` layout's splits/<split>.csv as {column: value}; each sample once."""
+    lines = csv_rows(csv_path, "dynamic split file")
+    header = lines[0][1] if lines else []
+    missing = [c for c in SPLIT_COLUMNS if c not in header]
+    if missing:
+        raise ValueError(f"{csv_path}: the first line must name the columns {list(SPLIT_COLUMNS)} (and any others), "
+                         f"got {header}; missing {missing}")
+    rows = []
+    for k, fields in lines[1:]:
+        if len(fields) != len(header):
+            raise ValueError(f"{csv_path}:{k}: expected {len(header)} fields ({','.join(header)}), got {len(fields)}")
+        rows.append(dict(zip(header, fields)))
+    refuse_repeats(csv_path, [(r["sample"], k) for r, (k, _) in zip(rows, lines[1:])], "sample")
+    return rows
 
 
 def panel_folder(root: Path, split: str | None) -> Path:

@@ -4,12 +4,17 @@ run_dir/phase1/{best,last}.pt   SegmentationTask checkpoints (best = MIoU)
 run_dir/phase2/{best,last}.pt   JointTask checkpoints (best = SSIM), start from phase1/best.pt
 run_dir/vpr/                    vocabulary.npz, gallery_<split>_<seg>.npz (+ maps), metrics_<split>.json
 run_dir/vpr/<dataset>/          the same for dataset=carla4 / emptycities (place protocols: protocol.py)
+
+An evaluation writes its artefacts to its own run dir (the same vpr/ layout), reusing the training run's read
+only when they match (retrieval.py); it never writes into the training run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import tempfile
 from pathlib import Path
 
 import torch
@@ -20,13 +25,14 @@ from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.tasks.mmdip.config import DynamicDataConfig, MMDIPConfig, data_config, task_config
-from geoloc.tasks.mmdip.datasets import NUM_CLASSES
+from geoloc.tasks.mmdip.datasets import NUM_CLASSES, STATIC_CLASSES
 from geoloc.tasks.mmdip.generator_loss import check_generator_loss
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.networks import check_segmenters
 from geoloc.tasks.mmdip.readers import build_reader, check_reader
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
+from geoloc.tasks.mmdip.shapes import check_image_size
 from geoloc.tasks.mmdip.stored_config import upgraded_config
 
 TRANSFORM_KEYS = ("image_size",)  # must stay as trained
@@ -41,11 +47,13 @@ def vpr_dir(run_dir: Path, dataset: str) -> Path:
 
 def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfig]:
     """The run's typed configs; every registered part (segmenter, generator loss, reader) is checked against the
-    registry here, so an unknown name or key fails before any data is read or generated."""
+    registry here, and dataset.image_size against the networks of both phases (shapes.py), so an unknown name or
+    key, or a size phase 2 cannot take, fails before any data is read or generated."""
     task_cfg = task_config(cfg.task)
     data_cfg = data_config(cfg.dataset)
     trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
     check_parts(task_cfg, data_cfg, training=True)
+    check_image_size(task_cfg, data_cfg)  # phase 2's shapes too: found there, they would cost all of phase 1
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
     if cfg.get("ckpt") or cfg.get("init_from"):
@@ -133,6 +141,20 @@ def print_recall(metrics: dict, title: str) -> None:
     print("recovered queries against their static views: " + _fmt({k: metrics[k] for k in IMAGE_KEYS}))
 
 
+def print_segmentation(metrics: dict, title: str) -> None:
+    """Table I's row of one checkpoint: PA, MPA, MIoU, FWIoU, then the IoU of each class present."""
+    print(f"\n{title}")
+    keys = ("PA", "MPA", "MIoU", "FWIoU")
+    print("| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
+    print("| " + " | ".join(f"{metrics[k]:.4f}" for k in keys) + " |")
+    present = [(name, metrics[f"IoU_{c}"]) for c, name in enumerate(STATIC_CLASSES) if f"IoU_{c}" in metrics]
+    print("\n| class | IoU |\n|---|---|")
+    print("\n".join(f"| {name} | {iou:.4f} |" for name, iou in present))
+    absent = [name for c, name in enumerate(STATIC_CLASSES) if f"IoU_{c}" not in metrics]
+    if absent:
+        print(f"absent from labels and predictions (left out of the means): {', '.join(absent)}")
+
+
 def _merged_dataset(stored: DictConfig, requested: DictConfig | None) -> DictConfig:
     section = OmegaConf.to_container(stored, resolve=True)
     if requested is not None:
@@ -165,9 +187,10 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
 
     Phase 2, every reader (dynamic, carla4, emptycities): the place protocol of protocol.py, so the recall keys
     + num_queries, the BoW / SPM / dynamic-BoW rows, and L1 / L2 / PSNR / SSIM of the recovered queries against
-    their static views; artefacts are reused from the run's vpr/ folder (vpr_dir). Phase 1: PA, MPA, MIoU, FWIoU
-    (needs labels). `cfg.ckpt` is the checkpoint (`state` its loaded contents, when the caller has them); the
-    launcher writes the metrics to `metrics_out`."""
+    their static views; artefacts are written to vpr_dir(cfg.run_dir) (a temporary folder, removed, when the
+    config has no run dir) and reused, read only, from the checkpoint's training run (training_run). Phase 1: PA,
+    MPA, MIoU, FWIoU and the per-class IoU (needs labels). Each prints its table. `cfg.ckpt` is the checkpoint
+    (`state` its loaded contents, when the caller has them); the launcher writes the metrics to `metrics_out`."""
     ckpt_path = Path(cfg.ckpt)
     task, task_cfg, stored = load_task(ckpt_path, state)
     data_cfg = data_config(_merged_dataset(stored.dataset, cfg.get("dataset")))
@@ -181,10 +204,17 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
     task.to(device)
 
     if is_joint:
+        own = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
+        training = training_run(ckpt_path)
+        if own and training is not None and Path(own).resolve() == training:
+            raise ConfigError(f"run_dir={own} is the training run of {ckpt_path}; an evaluation writes to its own run "
+                              f"dir (leave hydra.run.dir at its default, or name a new folder)")
         protocol = reader.place_protocol(data_cfg.split)
-        metrics = evaluate_retrieval(task, protocol, task_cfg.vpr, device,
-                                     vpr_dir(ckpt_path.resolve().parent.parent, data_cfg.name), model_id(ckpt_path),
-                                     data_cfg.val_batch_size)["metrics"]
+        with (contextlib.nullcontext(vpr_dir(own, data_cfg.name)) if own
+              else tempfile.TemporaryDirectory(prefix="geoloc-mmdip-evaluation-")) as out:
+            metrics = evaluate_retrieval(
+                task, protocol, task_cfg.vpr, device, Path(out), model_id(ckpt_path), data_cfg.val_batch_size,
+                reuse_from=[] if training is None else [vpr_dir(training, data_cfg.name)])["metrics"]
         print_recall(metrics, f"MMDIP retrieval, {data_cfg.name} {data_cfg.split or ''}, ckpt {ckpt_path}")
     else:
         dataset = reader.split(data_cfg.split)
@@ -192,4 +222,13 @@ def evaluate(cfg: DictConfig, state: dict | None = None) -> dict:
         conf = sum(batch_confusion(task.seg(b["dynamic"].to(device)).argmax(1), b["label"].to(device),
                                    task.num_classes).sum(0) for b in loader)
         metrics = confusion_metrics(conf[None])
+        print_segmentation(metrics, f"MMDIP phase-1 segmentation ({task_cfg.segmentation.model}), {data_cfg.name} "
+                                    f"{data_cfg.split or ''}, ckpt {ckpt_path}")
     return metrics
+
+
+def training_run(ckpt_path: Path) -> Path | None:
+    """The run dir that trained `ckpt_path` (RUN/phase1/*.pt, RUN/phase2/*.pt), or None for a checkpoint
+    elsewhere (a copy): its vpr/ artefacts are reused read only, never written by an evaluation."""
+    ckpt_path = Path(ckpt_path).resolve()
+    return ckpt_path.parent.parent if ckpt_path.parent.name in ("phase1", "phase2") else None

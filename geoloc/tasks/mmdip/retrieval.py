@@ -143,7 +143,21 @@ def retrieval_metrics(q_bow, q_spm, r_bow, r_spm, cfg: VPRConfig) -> tuple[dict,
 def _reusable(path: Path, meta: dict) -> bool:
     """An artefact is reused only when it was made with the same settings (and the same model)."""
     manifest = path.with_suffix(".json")
-    return path.is_file() and manifest.is_file() and json.loads(manifest.read_text()) == meta
+    if not (path.is_file() and manifest.is_file()):
+        return False
+    try:
+        return json.loads(manifest.read_text()) == meta
+    except ValueError:  # a cut manifest: the artefact is made again
+        return False
+
+
+def _reusable_in(folders, name: str, meta: dict, beside: str | None = None) -> Path | None:
+    """The first `folder/name` made with `meta` (and with `folder/beside` present), or None."""
+    for folder in folders:
+        path = Path(folder) / name
+        if _reusable(path, meta) and (beside is None or (Path(folder) / beside).is_file()):
+            return path
+    return None
 
 
 def _mark(path: Path, meta: dict) -> None:
@@ -157,11 +171,14 @@ def model_id(ckpt: Path) -> str:
 
 
 def evaluate_retrieval(task, protocol: PlaceProtocol, cfg: VPRConfig, device, artefact_dir: Path, model: str,
-                       batch_size: int = 8, num_workers: int = 0, extra_levels=(), log=print) -> dict:
+                       batch_size: int = 8, num_workers: int = 0, extra_levels=(), log=print,
+                       reuse_from=()) -> dict:
     """Fused retrieval under `protocol` (a reader's place_protocol); returns metrics, ranks and examples.
 
     `model` identifies the weights (model_id of the checkpoint): a saved gallery is reused only for the same
-    weights and settings, the vocabulary for the same images and ORB / vocabulary settings.
+    weights and settings, the vocabulary for the same images and ORB / vocabulary settings. Artefacts are looked
+    for in `artefact_dir`, then in the `reuse_from` folders (read only: a training run's vpr/ seen from an
+    evaluation); whatever is made, and metrics_<split>.json, is written to `artefact_dir` alone.
     Keys: R@K / R@1% / num_queries (BoW + SPM at cfg.levels), BoW/R@K (recovered image only), SPM/R@K,
     dynamic-BoW/R@K (the raw dynamic query, no recovery), L{l}/R@K and L{l}/coding_ms for `extra_levels`,
     ms/<stage> per query, L1 / L2 / PSNR / SSIM and num_images (recovered queries against their static views),
@@ -179,8 +196,11 @@ def evaluate_retrieval(task, protocol: PlaceProtocol, cfg: VPRConfig, device, ar
                                                   "orb_fast_threshold")}}
     if protocol.vocabulary_source != FROM_TRAIN:
         vocab_meta["split"] = protocol.split  # the gallery's own images
-    if _reusable(vocab_path, vocab_meta):
-        coder.vocab = Vocabulary.load(vocab_path)
+    found = _reusable_in([artefact_dir, *reuse_from], vocab_path.name, vocab_meta)
+    if found is not None:
+        coder.vocab = Vocabulary.load(found)
+        if found != vocab_path:
+            log(f"vocabulary: {found} (read only)")
     else:
         images = protocol.vocabulary
         imgs = [to_uint8(images[i]["static"][None])[0] for i in range(len(images))]
@@ -197,8 +217,11 @@ def evaluate_retrieval(task, protocol: PlaceProtocol, cfg: VPRConfig, device, ar
     gallery_path, seg_path = artefact_dir / f"{stem}.npz", artefact_dir / f"{stem}_seg.npy"
     gallery_meta = {**vocab_meta, "split": protocol.split, "gallery_seg": gallery_seg, "levels": cfg.levels,
                     "model": model if gallery_seg == "predicted" else None}
-    if _reusable(gallery_path, gallery_meta) and seg_path.is_file():
-        gallery, ref_segs = Gallery.load(gallery_path), np.load(seg_path)
+    found = _reusable_in([artefact_dir, *reuse_from], gallery_path.name, gallery_meta, beside=seg_path.name)
+    if found is not None:
+        gallery, ref_segs = Gallery.load(found), np.load(found.parent / seg_path.name)
+        if found != gallery_path:
+            log(f"gallery: {found} (read only)")
     else:
         ref_imgs, ref_segs, ref_places = _run_references(
             task, _loader(protocol.references, batch_size, num_workers), device, gallery_seg == "label")

@@ -127,18 +127,22 @@ def test_tiny_phase1_phase2_vpr_then_evaluate(tmp_path, one_thread, monkeypatch)
         assert (run / "vpr" / artefact).is_file()
     assert json.loads((run / "metrics.json").read_text())["R@1"] == vpr["R@1"]
 
-    # evaluate() reuses the saved vocabulary and gallery and gives the same recall
-    mtime = (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns
+    # evaluate() reuses the run's vocabulary and gallery, read only, and gives the same recall; it writes its
+    # metrics to its own run dir, never into the training run
+    records = {p.name: p.stat().st_mtime_ns for p in (run / "vpr").iterdir()}
     out = tmp_path / "metrics.json"
-    again = evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "best.pt", out)
+    again = evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}", f"run_dir={tmp_path / 'eval'}"]),
+                     run / "phase2" / "best.pt", out)
     assert {k: again[k] for k in vpr if "R@" in k} == {k: vpr[k] for k in vpr if "R@" in k}
     assert json.loads(out.read_text())["num_queries"] == 8
-    assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns == mtime
-    # other weights: the gallery is coded again, the vocabulary (image settings only) is kept
-    vocab_mtime = (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns
-    evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}"]), run / "phase2" / "last.pt")
-    assert (run / "vpr" / "gallery_val_predicted.npz").stat().st_mtime_ns != mtime
-    assert (run / "vpr" / "vocabulary.npz").stat().st_mtime_ns == vocab_mtime
+    assert sorted(p.name for p in (tmp_path / "eval" / "vpr").iterdir()) == ["metrics_val.json"]
+    # other weights: the gallery is coded again, into the evaluation's dir; the vocabulary (image settings only)
+    # is the run's
+    evaluate(compose_train([*TINY_MMDIP, f"dataset.root={root}", f"run_dir={tmp_path / 'eval_last'}"]),
+             run / "phase2" / "last.pt")
+    assert (tmp_path / "eval_last" / "vpr" / "gallery_val_predicted.npz").is_file()
+    assert not (tmp_path / "eval_last" / "vpr" / "vocabulary.npz").exists()
+    assert {p.name: p.stat().st_mtime_ns for p in (run / "vpr").iterdir()} == records
 
     # Empty Cities 3-panel images: static-image recovery scores, and the place protocol (tests/test_mmdip_realformat)
     ec = tmp_path / "ec"

@@ -104,7 +104,8 @@ def test_evaluate_reports_the_place_protocol_on_both_panel_formats(tiny_run, one
         to_panels.convert(root, tmp / fmt, fmt)
         out = tmp / f"{fmt}.json"
         run.evaluate(compose_evaluate([f"ckpt={ckpt}", f"dataset={fmt}", f"dataset.root={tmp / fmt}",
-                                       "dataset.split=val", f"metrics_out={out}", "device=cpu"]))
+                                       "dataset.split=val", f"metrics_out={out}", "device=cpu",
+                                       f"run_dir={tmp / f'evaluate_{fmt}'}"]))
         m = results[fmt] = json.loads(out.read_text())
         assert set(RECALL_KEYS) | set(IMAGE_KEYS) | {"num_queries", "num_images"} <= set(m)
         assert m["num_queries"] == m["num_images"] == N_VAL
@@ -113,7 +114,9 @@ def test_evaluate_reports_the_place_protocol_on_both_panel_formats(tiny_run, one
         # the pairing, checked without the model: a raw dynamic view differs from its static view by two cars,
         # so ORB words alone find it; a query paired with another place's static view would score near 1/6
         assert m["dynamic-BoW/R@1"] >= 0.8
-        assert (ckpt.parent.parent / "vpr" / fmt / "gallery_val_predicted.npz").is_file()
+        # the evaluation's artefacts are in its own run dir, none in the training run
+        assert (tmp / f"evaluate_{fmt}" / "vpr" / fmt / "gallery_val_predicted.npz").is_file()
+        assert not (ckpt.parent.parent / "vpr" / fmt).exists()
     # the same places through the two readers: the same images, the same numbers
     for key in (*RECALL_KEYS, *IMAGE_KEYS, "BoW/R@1", "SPM/R@1"):
         assert results["carla4"][key] == pytest.approx(results["emptycities"][key], abs=1e-9), key

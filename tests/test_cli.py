@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
 from conftest import REPO
 
 from geoloc import cli
@@ -21,6 +22,7 @@ def test_help_lists_every_app():
         assert f"\n  {name} " in text
 
 
+@pytest.mark.slow
 def test_a_subcommand_is_its_entry_point(tmp_path):
     """`geoloc train --cfg job` prints the composed config as `python train.py --cfg job` does; a failing
     evaluate exits non-zero and names the file, as evaluate.py does."""

@@ -54,6 +54,7 @@ def task_of_option(group: str, option: str) -> str:
     return "crossview"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("group,option", every_option())
 def test_every_option_of_every_group_composes_and_builds(group, option, imagenet_stand_in, tmp_path):
     """Each option of each conf/ group composes for its task and builds what it configures, offline."""

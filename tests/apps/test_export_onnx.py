@@ -61,6 +61,7 @@ def run_both(module, session, shape, batch):
     return got, expected
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("branch", ["query", "reference"])
 def test_onnx_encoders_match_torch_at_two_batch_sizes(exported, branch):
     task, out, spec = exported
@@ -100,6 +101,7 @@ def test_existing_files_are_refused_unless_overwrite(exported):
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
 
 
+@pytest.mark.slow
 def test_the_spec_describes_the_recorded_query_view_and_where_queries_go(tmp_path):
     """University-1652 satellite -> drone: the checkpoint records drone photos ("image") for the query branch and
     aerial queries for its validation split, so query.onnx is described as taking photos, and the spec says the
@@ -129,6 +131,7 @@ def test_mmdip_checkpoints_are_refused(tmp_path):
     assert not (tmp_path / "onnx").exists()
 
 
+@pytest.mark.slow
 def test_a_failed_export_leaves_no_partial_file(tmp_path, monkeypatch):
     """The files are written to a temp folder and moved in at the end: the reference branch failing after the
     query branch was written leaves neither (nor the out folder the export created)."""

@@ -86,6 +86,7 @@ def brute_force(localizer, inputs, headings):
     return [(r, float(best[r]), float(headings[int(k[r])])) for r in order]
 
 
+@pytest.mark.slow
 def test_localize_equals_brute_force_scoring_with_and_without_heading_search(gallery):
     root, ckpt, folder = gallery
     loc = Localizer.load(ckpt, folder, device="cpu", heading_steps=8)
@@ -124,6 +125,7 @@ def test_a_limited_fov_photo_is_placed_on_the_canvas(gallery):
     assert answer["heading_deg"] == 90.0 and "truth" not in answer  # no path given: the truth is not looked up
 
 
+@pytest.mark.slow
 def test_localize_refuses_a_gallery_of_other_weights_or_without_places(gallery, tmp_path):
     root, ckpt, folder = gallery
     other = tmp_path / "other"
@@ -172,9 +174,10 @@ def test_localize_py_answers_a_folder_with_one_json_line_and_picture_each(galler
         localize(cfg)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (REALDATA / "cvusa_mini").is_dir(), reason="../shared/realdata is absent")
 def test_localize_a_real_cvusa_panorama_against_a_gallery_of_its_folder(gallery, tmp_path):
-    """Done-when of issue 12: a real panorama against a gallery built from the same folder (2 val pairs)."""
+    """A real panorama against a gallery built from the same folder (2 val pairs)."""
     _, ckpt, _ = gallery
     root, folder = REALDATA / "cvusa_mini", tmp_path / "real_gallery"
     run.evaluate(compose_evaluate([f"ckpt={ckpt}", "progress=false", "device=cpu", f"run_dir={tmp_path / 'eval'}",

@@ -114,6 +114,7 @@ def _run(fn, world, root, out_dir):
         mp.spawn(fn, args=(world, free_port(), root, out_dir), nprocs=world)
 
 
+@pytest.mark.slow
 def test_two_process_steps_equal_one_process_step(tiny_cvusa, tmp_path):
     _run(_train_steps, 1, tiny_cvusa, tmp_path)
     _run(_train_steps, 2, tiny_cvusa, tmp_path)
@@ -147,6 +148,7 @@ def test_two_process_steps_equal_one_process_step(tiny_cvusa, tmp_path):
         assert all(torch.equal(a["queue"][k], b["queue"][k]) for k in a["queue"])
 
 
+@pytest.mark.slow
 def test_two_process_validation_recall_equals_one_process(tiny_cvusa, tmp_path):
     _run(_validate, 1, tiny_cvusa, tmp_path)
     _run(_validate, 2, tiny_cvusa, tmp_path)
@@ -163,6 +165,7 @@ def test_two_process_validation_recall_equals_one_process(tiny_cvusa, tmp_path):
             assert ddp[key] == pytest.approx(value, **tolerance), (rank, key)
 
 
+@pytest.mark.slow
 def test_torchrun_smoke_writes_one_run_dir_that_single_process_evaluate_loads(tiny_cvusa, tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
            f"--master_port={free_port()}", str(REPO / "train.py"), *TINY, f"dataset.root={tiny_cvusa}",

@@ -86,6 +86,7 @@ def test_a_key_the_command_line_changes_is_refused_by_name_and_only_it(finished_
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.slow
 def test_a_resume_in_place_from_an_older_checkpoint_is_refused_unless_asked_for(tiny_cvusa, tmp_path):
     """ckpt=RUN/best.pt hydra.run.dir=RUN would rewind last.pt and metrics.jsonl to best.pt's epoch."""
     run_dir = tmp_path / "run"
@@ -101,6 +102,7 @@ def test_a_resume_in_place_from_an_older_checkpoint_is_refused_unless_asked_for(
     assert ckpt_io.load(run_dir / "last.pt")["epoch"] == 1  # epoch 1 trained again, on purpose
 
 
+@pytest.mark.slow
 def test_init_from_starts_a_new_run_from_the_weights_and_records_the_source(finished_run, tmp_path):
     root, finished = finished_run
     source_path = finished / "last.pt"
@@ -137,6 +139,7 @@ def test_init_from_and_ckpt_together_are_refused(finished_run, tmp_path):
         run.train(train_cfg(root, tmp_path / "r", f"ckpt={finished / 'last.pt'}", f"init_from={finished / 'last.pt'}"))
 
 
+@pytest.mark.slow
 def test_a_shape_mismatch_names_the_checkpoint_and_the_keys(finished_run, tmp_path):
     root, finished = finished_run
     with pytest.raises(ConfigError, match="does not match") as err:  # init_from into another network width

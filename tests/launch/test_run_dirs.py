@@ -103,6 +103,7 @@ def test_resume_in_place_is_allowed(finished_run, tmp_path):
     assert ckpt_io.load(resumed / "last.pt")["epoch"] == 1
 
 
+@pytest.mark.slow
 def test_default_run_dirs_differ_for_runs_started_in_the_same_second(tmp_path):
     # two processes (pids 1111, 2222) resolve Hydra's run and sweep dirs while `now` shows the same second
     script = f"""
@@ -147,6 +148,7 @@ def test_a_run_that_fails_before_writing_leaves_no_dir(finished_run, tiny_cvusa,
     assert not run_dir.exists()
 
 
+@pytest.mark.slow
 def test_train_py_refuses_a_taken_dir_before_hydra_writes_into_it_and_a_config_error_leaves_nothing(tmp_path):
     finished = tmp_path / "finished"
     (finished / ".hydra").mkdir(parents=True)
@@ -165,6 +167,7 @@ def test_train_py_refuses_a_taken_dir_before_hydra_writes_into_it_and_a_config_e
     assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_file() or p.name.startswith("20")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", ["evaluate.py", "localize.py"])
 def test_evaluate_and_localize_refuse_a_training_runs_folder(script, tmp_path):
     """`evaluate.py ckpt=RUN/best.pt hydra.run.dir=RUN` would have Hydra replace the training's .hydra/ record."""

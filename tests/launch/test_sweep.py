@@ -23,6 +23,7 @@ needs_submitit = pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydr
                                     reason="hydra-submitit-launcher is not installed")
 
 
+@pytest.mark.slow
 @needs_submitit
 def test_local_sweep_runs_two_jobs_and_the_table_gathers_them(tiny_cvusa, tmp_path):
     sweep = tmp_path / "multirun"

@@ -118,6 +118,8 @@ def test_eq3_as_written_drops_the_branch_activation():
     expected_desc, expected_mask = msae_by_hand(plain, taps, activation=lambda x: x)
     torch.testing.assert_close(m_plain, expected_mask)
     torch.testing.assert_close(d_plain, expected_desc)
+    relu_desc, relu_mask = msae_by_hand(relu, taps, activation=torch.relu)
+    torch.testing.assert_close((d_relu, m_relu), (relu_desc, relu_mask))
     with pytest.raises(ValueError, match=r"scale_activation must be one of \('relu', 'none'\)"):
         MSAEHead([4], dim=8, scale_activation="gelu")
 
@@ -129,6 +131,7 @@ def test_eq3_as_written_drops_the_branch_activation():
     {"name": "gap"},
     {"name": "mean_max", "module": "tests/plugins/mean_max.py"},
 ])
+@pytest.mark.slow
 def test_branch_features_give_the_same_descriptor_with_its_maps(head):
     """features(x) is forward(x) bit for bit, with the backbone's maps and the head's map before pooling."""
     from conftest import REPO

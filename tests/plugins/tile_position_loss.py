@@ -1,7 +1,6 @@
 """A loss plug-in that asks for more of the batch than (query, reference, labels): the batch itself and the
 reference branch's maps, by naming them (as a metric-localisation loss would, to read each pair's tile position)."""
 
-import torch
 from geoloc.losses.triplet import soft_margin_triplet
 from geoloc.registry import register
 from torch import nn

@@ -45,6 +45,7 @@ def _u1652(root):
     return root
 
 
+@pytest.mark.slow
 def test_a_trained_checkpoint_records_its_query_views(finished_run):
     root, run_dir = finished_run
     state = ckpt_io.load(run_dir / "best.pt")
@@ -93,6 +94,7 @@ def test_the_record_is_read_not_a_guess_from_the_dataset_name(tmp_path):
     assert spec["query_view"] == "sphere" and SPHERE_CROP in spec["query"][1]
 
 
+@pytest.mark.slow
 def test_an_old_checkpoint_asks_its_reader(tmp_path):
     from conftest import write_cvusa
 
@@ -109,6 +111,7 @@ def test_an_old_checkpoint_asks_its_reader(tmp_path):
         away.input_spec("drone")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("recorded", [True, False])
 def test_university_1652_satellite_to_drone(tmp_path, recorded):
     """The query branch takes drone photos ("image"); the validation queries are aerial, as the reader says, for a

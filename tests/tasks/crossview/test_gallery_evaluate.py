@@ -28,6 +28,7 @@ def evaluate(tmp_path, ckpt, *extra):
                                           f"run_dir={tmp_path / 'eval'}", *extra]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["torch", "faiss"])
 def test_saved_flat_gallery_gives_the_exact_recall(trained, tmp_path, backend):
     if backend == "faiss":

@@ -146,6 +146,7 @@ def test_a_full_view_trains_exactly_as_before_with_or_without_random_heading(tin
         assert torch.equal(plain[key]["reference"], heading[key]["reference"])
 
 
+@pytest.mark.slow
 def test_evaluate_sets_the_test_condition_over_the_trained_one(tmp_path):
     root = write_cvusa(tmp_path / "cvusa", n_train=8, n_val=6)
     run_dir = tmp_path / "run"

@@ -12,6 +12,7 @@ its point on the full set, not the point of this test.
 
 from __future__ import annotations
 
+import pytest
 from geoloc.launch import run
 
 from conftest import compose_evaluate, compose_train
@@ -19,6 +20,7 @@ from conftest import compose_evaluate, compose_train
 N_TRAIN = 48
 
 
+@pytest.mark.slow
 def test_the_default_recipe_fits_its_training_places(tmp_path):
     run_dir, data = tmp_path / "run", tmp_path / "synthetic"
     run.train(compose_train([

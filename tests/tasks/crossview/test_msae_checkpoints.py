@@ -3,6 +3,7 @@ checkpoint written before the option, of either layout) is rebuilt with the bran
 
 from __future__ import annotations
 
+import pytest
 import torch
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.tasks.crossview.run import restored_task, stored_config
@@ -16,6 +17,7 @@ def _with_head(state: dict, **head) -> dict:
     return {**state, "config": OmegaConf.to_yaml(cfg)}
 
 
+@pytest.mark.slow
 def test_a_checkpoint_without_the_key_keeps_the_relu(finished_run):
     _, run_dir = finished_run
     state = ckpt_io.load(run_dir / "best.pt")

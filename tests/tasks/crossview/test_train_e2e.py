@@ -15,6 +15,7 @@ from conftest import REALDATA, compose_evaluate
 from helpers.crossview_runs import pairs_of, task_of, train_cfg, train_until_killed, val_records
 
 
+@pytest.mark.slow
 def test_kill_and_resume_reproduce_the_uninterrupted_run(tiny_cvusa, tmp_path, monkeypatch):
     full = tmp_path / "full"
     run.train(train_cfg(tiny_cvusa, full, "trainer.max_epochs=3"))

@@ -77,9 +77,12 @@ def test_an_existing_gallery_is_kept_unless_overwrite_before_any_data_is_read(bu
     assert json.loads((copy / "gallery.json").read_text())["reference_spread"] == info["reference_spread"]
 
 
-def test_a_trained_kind_on_eight_references_is_refused_before_encoding(built, tmp_path):
+def test_a_trained_kind_on_eight_references_is_refused_before_encoding(built, tmp_path, monkeypatch):
+    from geoloc.tasks.crossview import gallery as crossview_gallery
+
     pytest.importorskip("faiss")
     root, ckpt, _ = built
+    monkeypatch.setattr(crossview_gallery, "encode_split", lambda *a, **k: pytest.fail("encoded first"))
     with pytest.raises(ConfigError, match="gallery.kind=ivfpq builds ivfpq, which trains .* needs at least 256 "
                                           "references; this split has 8. Use gallery.kind=flat"):
         evaluate(tmp_path, ckpt, root, "gallery.backend=faiss", "gallery.kind=ivfpq", "gallery.m=8",

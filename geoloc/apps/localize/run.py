@@ -57,8 +57,8 @@ def figure_name(image: Path) -> str:
 
 
 def refuse_out_holding_inputs(out: Path, images: list[Path]) -> None:
-    """out= must not be a folder an input image lies in: its figures and localize.jsonl would land among the
-    inputs, replace one (a.png's figure is a.png.png, but the input might be it) and be read as inputs next time."""
+    """out= must not be a folder an input image lies in: the figures (PNG images themselves) would land among the
+    inputs, could replace one (a.png.png may be an input too) and would be read as inputs by the next run there."""
     folders = {p.parent.resolve() for p in images}
     if out.resolve() in folders:
         raise ConfigError(f"out={out} is the folder of the input images (image=...): the figures and localize.jsonl "

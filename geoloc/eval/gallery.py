@@ -92,6 +92,21 @@ def _set_search_knobs(faiss, kind: str, index, p: dict) -> None:
         faiss.downcast_index(index).hnsw.efSearch = p["ef_search"]
 
 
+def training_points(kind: str, params: dict) -> tuple[int, str]:
+    """(the fewest vectors a kind's quantisers train on, what they train): FAISS's k-means refuses fewer points
+    than centroids. IVF kinds train ``nlist`` coarse centroids; PQ kinds 2^bits centroids per sub-quantiser (8 bits
+    for ivfpq by default, 4 for the fast-scan kinds)."""
+    parts = []
+    if kind in ("ivfpq", "ivfpq_refine"):
+        parts.append((params["nlist"], f"{params['nlist']} inverted lists (nlist)"))
+    if kind in PQ_KINDS:
+        bits = params["nbits"] if kind == "ivfpq" else 4
+        parts.append((2 ** bits, f"{2 ** bits} centroids per sub-quantiser ({bits}-bit codes)"))
+    if not parts:
+        return 0, "nothing"
+    return max(n for n, _ in parts), " and ".join(what for _, what in parts)
+
+
 def _positive_ints(values: dict, what: str) -> dict:
     bad = [f"{key}={value!r}" for key, value in values.items()
            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1]
@@ -187,6 +202,10 @@ class GalleryIndex:
         if self.backend != "faiss" or self._index.is_trained:
             return
         x = self._check(descriptors, "reference")
+        needed, trains = training_points(self.kind, self.params)
+        if x.shape[0] < needed:
+            raise ValueError(f"the {self.kind} index trains {trains}, so it needs at least {needed} descriptors to "
+                             f"train on, got {x.shape[0]}: use kind='flat' (exact, and fast at this size)")
         if x.shape[0] > max_points:
             x = x[torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:max_points]]
         self._index.train(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
@@ -258,17 +277,35 @@ class GalleryIndex:
 
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device | None = None) -> "GalleryIndex":
-        """Load a saved gallery; the torch backend goes to ``device`` (default: the CPU)."""
-        buf = io.BytesIO(Path(path).read_bytes())
-        state = torch.load(buf, weights_only=True)
+        """Load a saved gallery; the torch backend goes to ``device`` (default: the CPU). A missing file raises
+        FileNotFoundError; a truncated, corrupt or foreign one ValueError naming the file."""
+        path = Path(path)
+        buf = io.BytesIO(path.read_bytes())
+        try:
+            state = torch.load(buf, weights_only=True)
+        except Exception as err:  # torch's message (a page on a cut zip archive) names no file
+            raise ValueError(f"could not read the gallery index {path}: it is truncated, corrupt or not a "
+                             f"gallery.pt ({_first_line(err)})") from err
         if not isinstance(state, dict) or state.get("format") != _FORMAT:
             raise ValueError(f"{path} is not a geoloc gallery index (expected format {_FORMAT!r})")
-        index = cls(state["dim"], state["backend"], state["kind"], device=device, chunk_size=state["chunk_size"],
-                    **state["params"])
-        if index.backend == "faiss":
-            faiss = import_faiss()
-            index._index = faiss.deserialize_index(state["faiss_index"].numpy())
-            _set_search_knobs(faiss, index.kind, index._index, index.params)
-        elif state["descriptors"] is not None:
-            index.add(state["descriptors"])
+        try:
+            index = cls(state["dim"], state["backend"], state["kind"], device=device,
+                        chunk_size=state["chunk_size"], **state["params"])
+            if index.backend == "faiss":
+                faiss = import_faiss()
+                index._index = faiss.deserialize_index(state["faiss_index"].numpy())
+                if index._index.d != index.dim:
+                    raise ValueError(f"its FAISS index has dimension {index._index.d}, its record {index.dim}")
+                _set_search_knobs(faiss, index.kind, index._index, index.params)
+            elif state["descriptors"] is not None:
+                index.add(state["descriptors"])
+        except ImportError:
+            raise
+        except Exception as err:  # a record without its keys, a FAISS blob cut inside the archive
+            raise ValueError(f"the gallery index {path} is corrupt ({_first_line(err)})") from err
         return index
+
+
+def _first_line(err: Exception) -> str:
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return f"{type(err).__name__}: {lines[0] if lines else ''}"

@@ -50,10 +50,12 @@ def refuse_if_taken(run_dir: str | Path, ckpt: str | None = None, role: str = "t
 
 
 @contextlib.contextmanager
-def claimed(run_dir: str | Path, ckpt: str | None = None, role: str = "training") -> Iterator[Path]:
+def claimed(run_dir: str | Path, ckpt: str | None = None, role: str = "training",
+            key: str = "hydra.run.dir") -> Iterator[Path]:
     """Own `run_dir` for the block: create it, lock it, refuse it when taken (see `refuse_if_taken`), remove
     temp files of a killed save. If the block fails before the run wrote anything (a config error, a missing
-    dataset), the folder is removed, Hydra's `.hydra/` and log included. Ranks > 0 only get the path."""
+    dataset), the folder is removed, Hydra's `.hydra/` and log included. Ranks > 0 only get the path. `key`: the
+    setting that chose the folder (localize.py's `out`), named in refusals."""
     run_dir = Path(run_dir)
     if launch_rank() > 0:
         yield run_dir
@@ -61,11 +63,11 @@ def claimed(run_dir: str | Path, ckpt: str | None = None, role: str = "training"
     run_dir.mkdir(parents=True, exist_ok=True)
     fd = os.open(run_dir / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
     try:
-        _lock_or_refuse(fd, run_dir)
+        _lock_or_refuse(fd, run_dir, key)
         os.ftruncate(fd, 0)
         os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
         try:
-            _refuse_output(run_dir, ckpt, role)
+            _refuse_output(run_dir, ckpt, role, key)
             for pattern in STALE_TEMP:
                 for tmp in run_dir.glob(pattern):
                     tmp.unlink()
@@ -90,22 +92,22 @@ def holds_nothing(folder: Path, top: bool = True) -> bool:
     return True
 
 
-def _lock_or_refuse(fd: int, run_dir: Path) -> None:
+def _lock_or_refuse(fd: int, run_dir: Path, key: str = "hydra.run.dir") -> None:
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "a process that wrote no pid"
         raise RunDirTaken(
             f"run dir {run_dir} is in use by another live run ({holder}, per {run_dir / LOCK}). Two runs in one "
-            f"folder would overwrite each other's checkpoints and interleave metrics.jsonl. Choose another "
-            f"hydra.run.dir (or leave the default, which is unique), or wait for that run to end.") from None
+            f"folder would overwrite each other's outputs (checkpoints, metrics.jsonl, localize.jsonl). Choose "
+            f"another {key} (or leave the default, which is unique), or wait for that run to end.") from None
     except OSError as err:  # e.g. ENOLCK: a file system without locks
         message = (f"cannot lock run dir {run_dir} ({err}): geoloc locks a run's folder so that no other run "
                    f"writes into it. Choose a hydra.run.dir on a file system with locks (local disk, NFSv4).")
         raise OSError(message) from err
 
 
-def _refuse_output(run_dir: Path, ckpt: str | None, role: str = "training") -> None:
+def _refuse_output(run_dir: Path, ckpt: str | None, role: str = "training", key: str = "hydra.run.dir") -> None:
     """A training may write into a run dir with outputs only to resume it (`ckpt` in it); an evaluation or a
     localisation ("evaluation", "localization") never writes into a training's folder, whose .hydra/ record and
     metrics it would mix with its own."""
@@ -116,7 +118,7 @@ def _refuse_output(run_dir: Path, ckpt: str | None, role: str = "training") -> N
     names = ", ".join(str(p.relative_to(run_dir)) for p in outputs[:6])
     if role != "training":
         raise RunDirTaken(f"run dir {run_dir} belongs to a training run ({names}); this {role} stopped before "
-                          f"writing anything. An {role} writes its own folder: leave hydra.run.dir at its default "
+                          f"writing anything. An {role} writes its own folder: leave {key} at its default "
                           f"(a new outputs/<...>/<date>_<time>_<pid>) or choose one that holds no run.")
     last = run_dir / "last.pt"
     if last.is_file():

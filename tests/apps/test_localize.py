@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -132,8 +133,9 @@ def test_localize_refuses_a_gallery_of_other_weights_or_without_places(gallery, 
     shutil.copytree(folder, other)
     info = json.loads((other / "gallery.json").read_text())
     (other / "gallery.json").write_text(json.dumps({**info, "model_fingerprint": "0" * 64}))
-    with pytest.raises(ConfigError, match="built with other weights"):
+    with pytest.raises(ConfigError, match=f"gallery in {other} was built with other weights"):
         Localizer.load(ckpt, other)
+    (other / "gallery.json").write_text(json.dumps(info))
     (other / "references.jsonl").unlink()
     with pytest.raises(FileNotFoundError, match="lacks references.jsonl.*gallery.save="):
         Localizer.load(ckpt, other)
@@ -164,7 +166,7 @@ def test_localize_py_answers_a_folder_with_one_json_line_and_picture_each(galler
     assert capsys.readouterr().out.splitlines() == lines  # printed as written
     for n, answer in zip((13, 14), answers):
         assert answer["image"].endswith(f"{n:07d}.jpg") and len(answer["topk"]) == 3
-        assert (tmp_path / "out" / f"{n:07d}.png").stat().st_size > 0
+        assert (tmp_path / "out" / f"{n:07d}.jpg.png").stat().st_size > 0
         assert "truth" not in answer  # copies outside the dataset root are not the split's queries
     (images / "0000013.jpg").unlink()
     (images / "0000014.jpg").unlink()
@@ -188,3 +190,84 @@ def test_localize_a_real_cvusa_panorama_against_a_gallery_of_its_folder(gallery,
     assert len(answer["topk"]) == 2 and answer["truth"]["row"] == 1  # the gallery holds the 2 val tiles
     assert answer["position"] is None and "error_m" not in answer["truth"]  # CVUSA's release has no positions
     assert answer["truth"]["reference"] == "bingmap/19/0000005.jpg"
+
+
+def compose_localize(*overrides):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("localize", overrides=["device=cpu", "heading=0", "topk=2", *overrides])
+
+
+def test_localize_py_never_writes_among_its_inputs_and_names_each_figure(gallery, tmp_path, capsys):
+    """out= pointed at the image folder used to write the figures over the inputs (a.png's figure is a.png) and
+    score a figure as the next query; a.jpg and a.png wrote the same a.png."""
+    from geoloc.apps.localize.run import localize
+
+    root, ckpt, folder = gallery
+    images = tmp_path / "images"
+    images.mkdir()
+    shutil.copy(root / "streetview/panos/0000013.jpg", images / "a.jpg")
+    cv2.imwrite(str(images / "a.png"), cv2.imread(str(root / "streetview/panos/0000014.jpg")))
+    before = {p.name: p.read_bytes() for p in images.iterdir()}
+    for image in (images, images / "a.png"):
+        with pytest.raises(ConfigError, match=f"out={images} is the folder of the input images"):
+            localize(compose_localize(f"ckpt={ckpt}", f"gallery={folder}", f"image={image}", f"out={images}"))
+    assert {p.name: p.read_bytes() for p in images.iterdir()} == before
+    answers = localize(compose_localize(f"ckpt={ckpt}", f"gallery={folder}", f"image={images}",
+                                        f"out={tmp_path / 'out'}"))
+    assert [a["picture"] for a in answers] == [str(tmp_path / "out" / n) for n in ("a.jpg.png", "a.png.png")]
+    assert (tmp_path / "out" / "a.jpg.png").read_bytes() != (tmp_path / "out" / "a.png.png").read_bytes()
+
+
+def test_localize_py_holds_the_lock_of_its_out_folder(gallery, tmp_path):
+    from geoloc.apps.localize.run import localize
+    from geoloc.launch.rundir import RunDirTaken, claimed
+
+    root, ckpt, folder = gallery
+    out = tmp_path / "out"
+    cfg = compose_localize(f"ckpt={ckpt}", f"gallery={folder}", f"image={root / 'streetview/panos/0000013.jpg'}",
+                           f"out={out}")
+    with claimed(out, role="localization", key="out"):  # another localize.py writing there now
+        with pytest.raises(RunDirTaken, match=f"run dir {out} is in use by another live run .*Choose another out"):
+            localize(cfg)
+        assert not (out / "localize.jsonl").exists()
+    assert len(localize(cfg)) == 1 and len((out / "localize.jsonl").read_text().splitlines()) == 1
+
+
+def test_a_gallery_saved_with_a_relative_root_keeps_the_truth_from_another_folder(gallery, tmp_path, monkeypatch):
+    root, ckpt, _ = gallery
+    work = tmp_path / "work"
+    work.mkdir()
+    shutil.copytree(root, work / "cvusa")
+    monkeypatch.chdir(work)
+    run.evaluate(compose_evaluate([f"ckpt={ckpt}", "progress=false", "device=cpu", f"run_dir={tmp_path / 'eval'}",
+                                   "dataset.root=cvusa", f"gallery.save={tmp_path / 'g'}"]))
+    assert json.loads((tmp_path / "g" / "gallery.json").read_text())["root"] == str((work / "cvusa").resolve())
+    monkeypatch.chdir(tmp_path)  # localize.py run from another folder
+    loc = Localizer.load(ckpt, tmp_path / "g", device="cpu")
+    query = work / "cvusa" / "streetview/panos/0000014.jpg"
+    answer = loc.localize(read_street(query), topk=3, heading=0, path=query).to_json()
+    assert answer["truth"]["row"] == 1 and answer["truth"]["reference"] == "bingmap/19/0000014.jpg"
+
+
+@pytest.mark.parametrize("damage", ["other_weights", "short_references"])
+def test_geoloc_serve_refuses_a_gallery_it_cannot_trust_before_serving(gallery, tmp_path, monkeypatch, capsys,
+                                                                        damage):
+    """A references.jsonl shorter than the index used to pass /health, then answer 500 IndexError."""
+    import uvicorn
+    from geoloc import cli
+
+    _, ckpt, folder = gallery
+    other = tmp_path / "g"
+    shutil.copytree(folder, other)
+    if damage == "other_weights":
+        info = json.loads((other / "gallery.json").read_text())
+        (other / "gallery.json").write_text(json.dumps({**info, "model_fingerprint": "0" * 64}))
+        says = f"gallery in {other} was built with other weights"
+    else:
+        lines = (other / "references.jsonl").read_text().splitlines()
+        (other / "references.jsonl").write_text("\n".join(lines[:-2]) + "\n")
+        says = f"{other / 'references.jsonl'} holds 6 references, but the gallery has 8 rows"
+    monkeypatch.setattr(uvicorn, "run", lambda *a, **k: pytest.fail("served a gallery it cannot trust"))
+    assert cli.main(["serve", f"ckpt={ckpt}", f"gallery={other}", "device=cpu"]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "gallery.save=" in err, err

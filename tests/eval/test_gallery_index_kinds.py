@@ -154,3 +154,32 @@ def test_query_blocks_give_the_one_call_result(easy, monkeypatch):
     blocked = index.search(query, 10)
     torch.testing.assert_close(blocked[1], whole[1])
     torch.testing.assert_close(blocked[0], whole[0])
+
+
+@pytest.mark.parametrize("kind, needed", [("ivfpq", 256), ("pq_refine", 16), ("ivfpq_refine", 16)])
+def test_a_trained_kind_refuses_too_few_vectors_with_the_count_it_needs(kind, needed):
+    """FAISS's own error ("Number of training points (25) should be at least as large as number of clusters")
+    names neither the kind nor the way out."""
+    reference = torch.from_numpy(unit(np.random.default_rng(0).standard_normal((needed - 1, DIM)))).float()
+    with pytest.raises(ValueError, match=rf"the {kind} index trains .* at least {needed} descriptors to train on, "
+                                         rf"got {needed - 1}: use kind='flat'"):
+        GalleryIndex(DIM, backend="faiss", kind=kind, m=8, nlist=1).add(reference)
+    full = torch.cat([reference, reference[:1]])
+    assert len(GalleryIndex(DIM, backend="faiss", kind=kind, m=8, nlist=1).add(full)) == needed  # the bound is tight
+
+
+@pytest.mark.parametrize("backend", ["torch", "faiss"])
+def test_a_truncated_or_corrupt_index_file_is_named(tmp_path, backend):
+    reference = torch.from_numpy(unit(np.random.default_rng(0).standard_normal((50, DIM)))).float()
+    GalleryIndex(DIM, backend=backend).add(reference).save(tmp_path / "gallery.pt")
+    data = (tmp_path / "gallery.pt").read_bytes()
+    (tmp_path / "gallery.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=rf"could not read the gallery index {tmp_path / 'gallery.pt'}: it is "
+                                         r"truncated, corrupt or not a gallery.pt \("):
+        GalleryIndex.load(tmp_path / "gallery.pt")
+    if backend == "faiss":  # a readable archive whose FAISS index is cut
+        GalleryIndex(DIM, backend=backend).add(reference).save(tmp_path / "gallery.pt")
+        state = torch.load(tmp_path / "gallery.pt", weights_only=True)
+        torch.save({**state, "faiss_index": state["faiss_index"][:100]}, tmp_path / "gallery.pt")
+        with pytest.raises(ValueError, match=rf"the gallery index {tmp_path / 'gallery.pt'} is corrupt \("):
+            GalleryIndex.load(tmp_path / "gallery.pt")

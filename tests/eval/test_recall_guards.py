@@ -4,19 +4,16 @@ backend and on the saved-gallery path (geoloc.eval.descriptors)."""
 from __future__ import annotations
 
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.config import ConfigError
 from geoloc.eval import GalleryIndex, recall_at_k
 from geoloc.eval.descriptors import UNIT_TOLERANCE, unit_rows
-from geoloc.tasks.crossview import gallery as crossview_gallery
-from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.eval.retrieval_metrics import index_metrics
-from geoloc.tasks.crossview.gallery import GalleryConfig
 
+from helpers.gallery_runs import gallery_evaluate, pairs_split
 from helpers.ranking import ranks_of
 
 BACKENDS = ["torch", pytest.param("faiss", marks=pytest.mark.skipif(
@@ -28,12 +25,6 @@ def unit_pairs(n=60, d=16, noise=0.5, seed=0):
     reference = torch.nn.functional.normalize(torch.randn(n, d, generator=g), dim=1)
     query = torch.nn.functional.normalize(reference + noise * torch.randn(n, d, generator=g), dim=1)
     return query, reference
-
-
-def pairs_split(n, root="/data"):
-    """A one-to-one RetrievalSplit of n pairs (query i matches reference i)."""
-    return RetrievalSplit("pairs", root, [f"q{i}.jpg" for i in range(n)], [f"r{i}.jpg" for i in range(n)],
-                          np.arange(n))
 
 
 def row_scales(n, seed=1):
@@ -122,14 +113,8 @@ def test_all_zero_rows_raise():
 
 # ---- the saved-gallery path of evaluate.py ---------------------------------------------------------------------
 def gallery_eval(monkeypatch, tmp_path, query, reference, **cfg):
-    """crossview_gallery.evaluate with encode_split() replaced by the given descriptors (no network needed)."""
-    monkeypatch.setattr(crossview_gallery, "encode_split",
-                        lambda task, engine, data, batch_size, sides=("query", "reference"):
-                        {k: {"query": query, "reference": reference}[k] for k in sides})
-    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
-    engine = SimpleNamespace(device=torch.device("cpu"))
-    split = pairs_split(len(query), tmp_path)
-    return crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), {})
+    """The saved-gallery path on the given descriptors (no network needed)."""
+    return gallery_evaluate(monkeypatch, pairs_split(len(query), tmp_path), query, reference, **cfg)
 
 
 def test_gallery_path_refuses_nan_before_saving_and_at_load(monkeypatch, tmp_path):
@@ -173,7 +158,7 @@ def test_gallery_path_refuses_a_gallery_saved_without_its_checks(monkeypatch, tm
     info = json.loads((tmp_path / "g" / "gallery.json").read_text())
     del info["reference_spread"]
     (tmp_path / "g" / "gallery.json").write_text(json.dumps(info))
-    with pytest.raises(Exception, match="rebuild it with gallery.save="):
+    with pytest.raises(ConfigError, match="lacks reference_spread.*older geoloc.*gallery.save="):
         gallery_eval(monkeypatch, tmp_path, query, None, load=str(tmp_path / "g"))
 
 

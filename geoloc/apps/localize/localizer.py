@@ -10,7 +10,6 @@ reference keeps its best-scoring candidate: the score ranks the references, the 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from geoloc.data.geo import distance_m
 from geoloc.data.relevance import Relevance
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview import CrossViewEncoder, LocalizationResult, read_places
+from geoloc.tasks.crossview import CrossViewEncoder, LocalizationResult, open_gallery
 
 
 class Localizer:
@@ -47,19 +46,9 @@ class Localizer:
         """device: None or "auto" (the GPU when there is one), "cpu", "cuda", "cuda:N"; heading_steps: None takes
         the checkpoint's dataset.heading_steps."""
         encoder = CrossViewEncoder.load(ckpt, "localize", device)
-        folder = Path(gallery)
-        if not (folder / "gallery.json").is_file():
-            raise FileNotFoundError(f"{folder} holds no saved gallery (gallery.json). Build one from the split "
-                                    f"whose references you want to search: python evaluate.py ckpt={ckpt} "
-                                    f"[dataset=... dataset.root=DIR] gallery.save={folder}")
-        info = json.loads((folder / "gallery.json").read_text())
-        places = read_places(folder, info)
-        if info.get("model_fingerprint") != encoder.fingerprint:
-            raise ConfigError(f"the gallery in {folder} was built with other weights ({info.get('ckpt')}) than "
-                              f"{ckpt}: its descriptors would not match. Rebuild it with python evaluate.py "
-                              f"ckpt={ckpt} gallery.save=NEW_DIR")
-        index = GalleryIndex.load(folder / "gallery.pt", device=encoder.device)
-        return cls(encoder, index, places, {**info, "ckpt_loaded": str(ckpt)}, heading_steps)
+        # every file checked, and refused unless these weights built it: each problem names its file
+        saved = open_gallery(gallery, encoder.fingerprint, ckpt, device=encoder.device)
+        return cls(encoder, saved.index, saved.places, {**saved.info, "ckpt_loaded": str(ckpt)}, heading_steps)
 
     def info(self) -> dict:
         """What /health and the JSON output say about the loaded model and gallery."""

@@ -1,17 +1,24 @@
 """What localize.py does: load the checkpoint and the gallery once, answer each image, write JSON lines and
-pictures."""
+pictures.
+
+The outputs never touch the inputs or another run: `out=` may not be a folder that holds an input image (a figure
+`<name>.png` would replace an input, and be read as one by the next run on that folder); each image's figure is
+named after its whole file name (`a.jpg.png`, `a.png.png`), so two images never share one; and the run holds the
+lock of its `out=` folder (geoloc/launch/rundir.py) while it writes, so a second localize.py, or a training, cannot
+write there at the same time.
+"""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
-
 from dataclasses import dataclass
+from pathlib import Path
 
 from omegaconf import MISSING, DictConfig
 
 from geoloc.apps.localize.localizer import Localizer, read_street
-from geoloc.config import checked
+from geoloc.config import ConfigError, checked
+from geoloc.launch.rundir import claimed
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
@@ -44,25 +51,42 @@ def images_of(target: Path) -> list[Path]:
     return [target]
 
 
+def figure_name(image: Path) -> str:
+    """The figure of `image` in out/: its whole file name + .png, so a.jpg and a.png get a figure each."""
+    return f"{image.name}.png"
+
+
+def refuse_out_holding_inputs(out: Path, images: list[Path]) -> None:
+    """out= must not be a folder an input image lies in: the figures (PNG images themselves) would land among the
+    inputs, could replace one (a.png.png may be an input too) and would be read as inputs by the next run there."""
+    folders = {p.parent.resolve() for p in images}
+    if out.resolve() in folders:
+        raise ConfigError(f"out={out} is the folder of the input images (image=...): the figures and localize.jsonl "
+                          "would be written among them, and read as images by the next run on that folder. Give "
+                          "another out= folder (or leave it out: a new folder under outputs/localize/)")
+
+
 def localize(section: DictConfig) -> list[dict]:
     """Each image's answer as written to localize.jsonl (LocalizationResult.to_json)."""
     cfg = checked(section, LocalizeConfig, "localize.py")
     images = images_of(Path(cfg.image))
-    localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    refuse_out_holding_inputs(out, images)
     answers = []
-    with open(out / "localize.jsonl", "a") as lines:
-        for path in images:
-            image = read_street(path)
-            result = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
-            if cfg.picture:
-                from geoloc.apps.localize.picture import localization_figure
+    with claimed(out, role="localization", key="out"):  # one writer per folder; a failed start leaves none
+        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
+        with open(out / "localize.jsonl", "a") as lines:
+            for path in images:
+                image = read_street(path)
+                result = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
+                if cfg.picture:
+                    from geoloc.apps.localize.picture import localization_figure
 
-                result.picture = str(localization_figure(result, image, localizer.places, out / f"{path.stem}.png"))
-            answer = result.to_json()
-            text = json.dumps(answer)
-            print(text)
-            lines.write(text + "\n")
-            answers.append(answer)
+                    picture = localization_figure(result, image, localizer.places, out / figure_name(path))
+                    result.picture = str(picture)
+                answer = result.to_json()
+                text = json.dumps(answer)
+                print(text)
+                lines.write(text + "\n")
+                answers.append(answer)
     return answers

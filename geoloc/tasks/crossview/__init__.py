@@ -3,9 +3,9 @@
 `train(cfg, run_dir)` trains and validates; `evaluate(cfg, state)` scores a checkpoint's state on a split.
 RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc/launch/resume.py). The apps
 (localize.py, `geoloc serve`, export.py) use what this package exports and nothing deeper: `CrossViewEncoder` (a
-checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and the places of a
-saved gallery (`read_places`, `POSITION_KEYS`). `config_nodes()` gives
-the defaults conf/ extends. The package registers itself as the task `crossview`.
+checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and a saved gallery,
+checked and bound to the weights that built it (`open_gallery` -> `SavedGallery`: the index and its places,
+`Places`, `POSITION_KEYS`). `config_nodes()` gives the defaults conf/ extends. The package registers itself as the task `crossview`.
 """
 
 import sys
@@ -13,11 +13,12 @@ import sys
 from geoloc import registry
 from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
+from geoloc.tasks.crossview.gallery_folder import SavedGallery, open_gallery
 from geoloc.tasks.crossview.localization import LocalizationResult
 from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
 from geoloc.tasks.crossview.run import evaluate, train
 
 registry.register("task", "crossview", sys.modules[__name__])
 
-__all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE",
-           "canonical_config", "config_nodes", "evaluate", "read_places", "train"]
+__all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "SavedGallery",
+           "canonical_config", "config_nodes", "evaluate", "open_gallery", "read_places", "train"]

@@ -4,7 +4,9 @@
     python evaluate.py ckpt=.../best.pt gallery.load=DIR      # only the query branch runs
 
 DIR holds `gallery.pt` (GalleryIndex.save), `gallery.json` (what it was built from, and the reference spread) and
-the places (`references.jsonl`, `queries.jsonl`: geoloc/tasks/crossview/places.py), which localize.py reads.
+the places (`references.jsonl`, `queries.jsonl`: geoloc/tasks/crossview/places.py), which localize.py reads. It is
+written whole or not at all, an existing gallery is replaced only with `gallery.overwrite=true`, and a gallery is
+loaded only by the weights that built it, for the split it was built from (gallery_folder.py).
 Gallery row j is the split's reference j, so the queries must come from the split the gallery was built on; they
 are scored against the split's relevance (`geoloc.eval.retrieval_metrics.index_metrics`). With `kind=flat` the
 stored vectors go through the scorer itself, so every number equals the exact evaluation, AP included; approximate
@@ -18,10 +20,8 @@ is built; a collapsed one is not saved).
 
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass, fields
-from pathlib import Path
 
 import torch
 
@@ -29,11 +29,11 @@ from geoloc.config import ConfigError
 from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.engine import distributed as dist
 from geoloc.eval.descriptors import check_descriptors
-from geoloc.eval.gallery import KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss
+from geoloc.eval.gallery import KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss, training_points
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
 from geoloc.tasks.crossview.encode import encode, encode_images
-from geoloc.tasks.crossview.places import write_places
+from geoloc.tasks.crossview.gallery_folder import open_gallery, save_gallery
 
 
 AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (benchmarks/README.md, 1M references)
@@ -44,6 +44,7 @@ class GalleryConfig(IndexParams):
     """evaluate.py's gallery.* keys: what to build or load, and the index knobs (IndexParams, their one home)."""
 
     save: str | None = None  # DIR: build the gallery from the split's references and save it there
+    overwrite: bool = False  # gallery.save may replace a gallery already in DIR
     load: str | None = None  # DIR: answer the queries from this saved gallery
     backend: str = "torch"  # torch (exact, chunked) | faiss
     kind: str = "auto"  # auto | flat (exact) | ivfpq | pq_refine | ivfpq_refine | hnsw (the last four: faiss)
@@ -77,14 +78,25 @@ class GalleryConfig(IndexParams):
         return "faiss", AUTO_APPROXIMATE
 
 
+def index_knobs(cfg: GalleryConfig, num_references: int) -> tuple[str, str, IndexParams]:
+    """(backend, kind, knobs) to build for `num_references`; a kind that cannot train on so few is refused."""
+    backend, kind = cfg.resolved(num_references)
+    knobs = {f.name: getattr(cfg, f.name) for f in fields(IndexParams)}
+    knobs["nlist"] = max(1, min(cfg.nlist, num_references // 39))
+    needed, trains = training_points(kind, knobs)
+    if num_references < needed:
+        raise ConfigError(f"gallery.kind={cfg.kind} builds {kind}, which trains {trains} and so needs at least "
+                          f"{needed} references; this split has {num_references}. Use gallery.kind=flat (exact, "
+                          f"and fast at this size)" + (", or fewer gallery.nbits" if kind == "ivfpq" else ""))
+    return backend, kind, IndexParams(**knobs)
+
+
 def build_index(reference: torch.Tensor, cfg: GalleryConfig) -> GalleryIndex:
-    backend, kind = cfg.resolved(reference.shape[0])
+    backend, kind, knobs = index_knobs(cfg, reference.shape[0])
     if kind in PQ_KINDS and reference.shape[1] % cfg.m:
         raise ConfigError(f"gallery.kind={cfg.kind} builds {kind}, whose gallery.m={cfg.m} sub-quantisers must divide "
                           f"the descriptor dim {reference.shape[1]}: set gallery.m to a divisor of it")
-    knobs = {f.name: getattr(cfg, f.name) for f in fields(IndexParams)}
-    knobs["nlist"] = max(1, min(cfg.nlist, reference.shape[0] // 39))
-    index = GalleryIndex(reference.shape[1], backend=backend, kind=kind, params=IndexParams(**knobs))
+    index = GalleryIndex(reference.shape[1], backend=backend, kind=kind, params=knobs)
     return index.add(reference)
 
 
@@ -99,28 +111,18 @@ def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", 
 
 
 def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
-    """Build-and-save or load the gallery, then score the split's queries against it."""
+    """Build-and-save or load the gallery, then score the split's queries against it. `meta`: what built it, as
+    gallery.json records it: `ckpt`, `model_fingerprint` (of the task's weights) and `dataset` (the reader)."""
     split = data.split
     if cfg.load:
-        folder = Path(cfg.load)
-        saved = json.loads((folder / "gallery.json").read_text()) if (folder / "gallery.json").is_file() else None
-        if saved is None:
-            raise FileNotFoundError(f"{folder} holds no gallery (gallery.json); build one with gallery.save={folder}")
-        if saved["num_references"] != split.num_references or saved["dim"] != task.model_cfg.dim:
-            raise ConfigError(
-                f"the gallery in {folder} has {saved['num_references']} references of dim {saved['dim']} (built "
-                f"from {saved.get('dataset')}), but this split has {split.num_references} references and the model "
-                f"dim {task.model_cfg.dim}: evaluate the split and checkpoint it was built from")
-        if "reference_spread" not in saved:
-            raise ConfigError(f"the gallery in {folder} was built by an older geoloc that did not check its "
-                              "descriptors (no reference_spread in gallery.json): rebuild it with "
-                              f"gallery.save={folder}")
-        spread = saved["reference_spread"]
-        index = GalleryIndex.load(folder / "gallery.pt", device=engine.device)
+        saved = open_gallery(cfg.load, meta["model_fingerprint"], meta["ckpt"], device=engine.device, split=split,
+                             dataset=meta["dataset"])
+        index, spread = saved.index, saved.info["reference_spread"]
         query = encode_split(task, engine, data, batch_size, sides=("query",))["query"]
         check_descriptors(query)
         plan = split_plan(split, exact=index.kind == "flat")
         return {**guarded(lambda: index_metrics(index, query, split), spread, plan), "num_references": len(index)}
+    index_knobs(cfg, split.num_references)  # a kind that cannot train on this split fails before encoding
     desc = encode_split(task, engine, data, batch_size)
     query, reference = desc["query"], desc["reference"]
     spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
@@ -131,13 +133,7 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
         index = build_index(reference, cfg)
         built.append(index)
         if cfg.save and dist.is_main():
-            folder = Path(cfg.save)
-            folder.mkdir(parents=True, exist_ok=True)
-            index.save(folder / "gallery.pt")
-            places = write_places(folder, split)
-            info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
-                    **index.params, "reference_spread": spread, **meta, **places}
-            (folder / "gallery.json").write_text(json.dumps(info, indent=2) + "\n")
+            save_gallery(cfg.save, index, split, {**meta, "reference_spread": spread}, overwrite=cfg.overwrite)
         return index_metrics(index, query, split)
 
     exact = cfg.resolved(split.num_references)[1] == "flat"

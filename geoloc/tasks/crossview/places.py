@@ -5,17 +5,22 @@ Written by `gallery.save=DIR` next to the index, read by localize.py and `geoloc
   (degrees) or "x_m", "y_m" (metres, e.g. CVACT's UTM) where the dataset has positions};
 - DIR/queries.jsonl: one line per query of the split: {"path", its position, "positive": its true gallery row,
   "semi_positives": [rows]}, so a query image of the split is localized with its true position and metre error.
-Paths are relative to the dataset root stored in gallery.json ("root").
+Paths are relative to the dataset root stored in gallery.json ("root", absolute, so a gallery built with a relative
+`dataset.root` still finds its images from another folder). `read_places` checks every line (JSON, fields, rows in
+range) and the count against gallery.json, naming the file and the line.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
 
 POSITION_KEYS = {"latlon": ("lat", "lon"), "xy": ("x_m", "y_m")}
@@ -32,6 +37,14 @@ def _position(kind: str | None, row) -> dict:
     return {} if kind is None or row is None else dict(zip(POSITION_KEYS[kind], map(float, row)))
 
 
+def split_record(split: RetrievalSplit) -> dict:
+    """What gallery.json records of the split a gallery was built from: its name, its absolute root and the sha256
+    of its reference paths (relative to the root) in gallery-row order, so a reordered split of the same size is
+    told apart."""
+    digest = hashlib.sha256("\n".join(_rel(p, split.root) for p in split.references).encode()).hexdigest()
+    return {"split": split.name, "root": str(Path(split.root).resolve()), "references_sha256": digest}
+
+
 def write_places(folder: Path, split: RetrievalSplit) -> dict:
     """Write references.jsonl and queries.jsonl; returns the keys gallery.json records about them."""
     kind, query_pos, reference_pos = split.positions()
@@ -45,10 +58,8 @@ def write_places(folder: Path, split: RetrievalSplit) -> dict:
                                    **_position(kind, None if query_pos is None else query_pos[i]),
                                    "positive": int(split.positives[i]), "semi_positives": semi}))
     for name, lines in (("references.jsonl", refs), ("queries.jsonl", queries)):
-        tmp = folder / (name + ".tmp")
-        tmp.write_text("\n".join(lines) + "\n")
-        tmp.replace(folder / name)
-    return {"root": str(split.root), "positions": kind, "query_view": split.query_view, "split": split.name}
+        (folder / name).write_text("\n".join(lines) + "\n")  # into the save's temporary folder (gallery_folder.py)
+    return {**split_record(split), "positions": kind, "query_view": split.query_view}
 
 
 @dataclass
@@ -81,21 +92,75 @@ class Places:
 
 
 def read_places(folder: Path, info: dict) -> Places:
-    """The places of the gallery in `folder` (info = its gallery.json)."""
+    """The places of the gallery in `folder` (info = its gallery.json, checked: gallery_folder.py). A missing
+    file raises FileNotFoundError; a cut line, a missing field, a row out of range or a count other than
+    gallery.json's ConfigError naming the file (and the line)."""
     folder = Path(folder)
     missing = [n for n in ("references.jsonl", "queries.jsonl") if not (folder / n).is_file()]
     if missing or "root" not in info:
         raise FileNotFoundError(f"the gallery in {folder} lacks {', '.join(missing) or 'root in gallery.json'}: it "
                                 "was saved by an older geoloc; rebuild it with `python evaluate.py ckpt=... "
                                 f"gallery.save={folder}`")
-    kind = info.get("positions")
-    refs = [json.loads(line) for line in (folder / "references.jsonl").read_text().splitlines() if line]
+    kind, rows = info.get("positions"), int(info["num_references"])
+    if kind is not None and kind not in POSITION_KEYS:
+        raise ConfigError(f"{folder / 'gallery.json'}: positions must be one of {sorted(POSITION_KEYS)} or null, "
+                          f"got {kind!r}")
+    wanted = POSITION_KEYS[kind] if kind is not None else ()
+    refs = _json_lines(folder / "references.jsonl", lambda line: _check_reference(line, wanted))
+    if len(refs) != rows:
+        raise ConfigError(f"{folder / 'references.jsonl'} holds {len(refs)} references, but the gallery has {rows} "
+                          "rows (gallery.json): the file was cut or edited, and gallery rows would name the wrong "
+                          "tiles")
     positions = None
     if kind is not None:
         positions = np.array([[r[k] for k in POSITION_KEYS[kind]] for r in refs], np.float64)
     queries = {}
-    for line in (folder / "queries.jsonl").read_text().splitlines():
-        if line:
-            q = json.loads(line)
-            queries[q["path"]] = q
+    for q in _json_lines(folder / "queries.jsonl", lambda line: _check_query(line, rows)):
+        queries[q["path"]] = q
     return Places(Path(info["root"]), kind, [r["path"] for r in refs], positions, queries)
+
+
+def _json_lines(path: Path, check) -> list[dict]:
+    """Each non-empty line of a JSON-lines file as a dict; `check(line)` returns what is wrong with one, or ""."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path} is not UTF-8 text ({err.reason} at byte {err.start}): it is corrupt") from None
+    records = []
+    for number, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"{path} line {number} is not JSON ({err.msg}, column {err.colno}): a line cut by an "
+                              "interrupted write, or an edit") from None
+        problem = "it is not an object" if not isinstance(record, dict) else check(record)
+        if problem:
+            raise ConfigError(f"{path} line {number}: {problem}")
+        records.append(record)
+    return records
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_reference(line: dict, position_keys: tuple) -> str:
+    if not isinstance(line.get("path"), str):
+        return "no \"path\" (a string)"
+    bad = [k for k in position_keys if not _finite(line.get(k))]
+    return f"no finite {', '.join(bad)}" if bad else ""
+
+
+def _check_query(line: dict, rows: int) -> str:
+    if not isinstance(line.get("path"), str):
+        return "no \"path\" (a string)"
+    semi = line.get("semi_positives", [])
+    row = lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < rows  # noqa: E731
+    if not row(line.get("positive")):
+        return f"\"positive\" must be a gallery row in 0..{rows - 1}, got {line.get('positive')!r}"
+    if not isinstance(semi, list) or not all(map(row, semi)):
+        return f"\"semi_positives\" must be a list of gallery rows in 0..{rows - 1}, got {semi!r}"
+    bad = [k for keys in POSITION_KEYS.values() for k in keys if k in line and not _finite(line[k])]
+    return f"{', '.join(bad)} not a finite number" if bad else ""

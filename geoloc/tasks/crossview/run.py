@@ -15,6 +15,7 @@ from geoloc.tasks.crossview import gallery
 from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
                                            parse_evaluation, parse_training)
 from geoloc.tasks.crossview.datasets import build, build_eval, known_heading
+from geoloc.tasks.crossview.gallery_folder import check_target
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state
 from geoloc.tasks.crossview.task import CrossViewTask
 
@@ -72,6 +73,8 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
 
 
 def score(run: CrossViewEvaluation, task: CrossViewTask) -> dict:
+    if run.gallery.save and dist.is_main():  # before the data is read: a taken folder costs nothing
+        check_target(run.gallery.save, run.gallery.overwrite)
     eval_data = build_eval(run.data, run.reader, run.data.split)
     task.validate_on(eval_data.split)
     trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress),
@@ -81,8 +84,7 @@ def score(run: CrossViewEvaluation, task: CrossViewTask) -> dict:
         if run.data.random_heading:
             raise ConfigError("gallery.save / gallery.load encode each query once, at its known heading; with "
                               "dataset.random_heading=true (K candidate headings per query) evaluate without gallery.*")
-        meta = {"ckpt": str(Path(run.job.ckpt).resolve()),
-                "dataset": f"{run.data.name} {run.data.split} {run.data.root}",
+        meta = {"ckpt": str(Path(run.job.ckpt).resolve()), "dataset": run.data.name,
                 "model_fingerprint": ckpt_io.weights_fingerprint(task.model)}
         metrics = gallery.evaluate(task, trainer.engine, eval_data, run.batch_size, run.gallery, meta)
     else:

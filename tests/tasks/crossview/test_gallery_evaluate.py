@@ -14,6 +14,7 @@ from geoloc.eval.retrieval_metrics import index_metrics
 from geoloc.launch import run
 
 from conftest import TINY, compose_evaluate, compose_train
+from helpers.gallery_runs import gallery_evaluate
 
 
 @pytest.fixture
@@ -79,12 +80,7 @@ def test_a_saved_gallery_scores_every_image_of_the_building(monkeypatch, tmp_pat
     "positive" drone image instead would miss every query whose first image is not on top."""
     if backend == "faiss":
         pytest.importorskip("faiss")
-    from types import SimpleNamespace
-
     from geoloc.eval.retrieval_metrics import split_metrics
-    from geoloc.tasks.crossview import gallery as crossview_gallery
-    from geoloc.tasks.crossview.datasets import EvalData
-    from geoloc.tasks.crossview.gallery import GalleryConfig
 
     g = torch.Generator().manual_seed(0)
     buildings, views = 4, 5
@@ -95,13 +91,9 @@ def test_a_saved_gallery_scores_every_image_of_the_building(monkeypatch, tmp_pat
     split = RetrievalSplit("u1652/satellite_to_drone", tmp_path, [f"s{i}.jpg" for i in range(buildings)],
                            [f"d{j}.jpg" for j in range(buildings * views)], np.arange(buildings) * views,
                            query_labels=np.arange(buildings), reference_labels=labels, query_view="aerial")
-    monkeypatch.setattr(crossview_gallery, "encode_split", lambda task, engine, data, batch_size,
-                        sides=("query", "reference"): {k: {"query": query, "reference": reference}[k] for k in sides})
-    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=16))
-    engine = SimpleNamespace(device=torch.device("cpu"))
     exact = split_metrics(query, reference, split)
     positive_only = recall_at_k(query, reference, positives=split.positives)
     assert exact["R@1"] == 1.0 and positive_only["R@1"] < 0.5  # the building is on top, its first image is not
     for cfg in (dict(save=str(tmp_path / "g"), backend=backend), dict(load=str(tmp_path / "g"))):
-        got = crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), {})
+        got = gallery_evaluate(monkeypatch, split, query, reference, **cfg)
         assert {k: got[k] for k in exact} == exact

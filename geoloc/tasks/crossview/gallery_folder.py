@@ -1,0 +1,215 @@
+"""A saved gallery's folder: written whole or not at all, and opened only by what it was built for.
+
+`python evaluate.py ckpt=... gallery.save=DIR` writes into DIR:
+- gallery.pt: the index (geoloc.eval.gallery.GalleryIndex.save);
+- gallery.json: what built it: the weights' `model_fingerprint` (engine/checkpoint.py) and the `ckpt` path, the
+  `dataset` reader, the `split`, its absolute `root` and `references_sha256` (the ordered reference paths,
+  places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
+- references.jsonl, queries.jsonl: the places (places.py).
+
+Saving writes every file into a hidden folder beside DIR (`.DIR.<random>.tmp`) and renames that folder to DIR, so
+DIR holds a whole gallery or none: an interrupted save leaves the old gallery as it was. An existing gallery is
+replaced only with `gallery.overwrite=true`, by exchanging the two folders in one rename (Linux `renameat2`; where
+the file system cannot, the old folder is renamed aside first), then removing the old one. A folder that holds
+anything but a gallery is never replaced.
+
+Opening (`open_gallery`: evaluate.py gallery.load=, localize.py and geoloc serve) checks, before anything is
+searched: gallery.json (JSON, fields), the weights' fingerprint against the checkpoint's, for evaluate.py the split
+being scored (dataset, split, root, reference count and order), then gallery.pt against gallery.json (count, dim)
+and every line of references.jsonl and queries.jsonl. Each problem raises a ConfigError naming the file and what to
+do (a missing file FileNotFoundError).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from geoloc.config import ConfigError
+from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.engine.checkpoint import umask
+from geoloc.eval.gallery import GalleryIndex
+from geoloc.tasks.crossview.places import Places, read_places, split_record, write_places
+
+INFO, INDEX = "gallery.json", "gallery.pt"
+# gallery.json's fields and their JSON types ("positions" is null or a string, checked by read_places)
+FIELDS = {"num_references": int, "dim": int, "backend": str, "kind": str, "ckpt": str, "model_fingerprint": str,
+          "dataset": str, "split": str, "root": str, "query_view": str, "references_sha256": str,
+          "reference_spread": (int, float)}
+# what binds a gallery to the split it was built from
+SPLIT_KEYS = ("dataset", "split", "root", "num_references", "references_sha256")
+
+
+@dataclass
+class SavedGallery:
+    """A checked gallery folder: its gallery.json, the index and the places."""
+
+    folder: Path
+    info: dict
+    index: GalleryIndex
+    places: Places
+
+
+def rebuild(folder: Path, ckpt=None) -> str:
+    return (f"Rebuild it: python evaluate.py ckpt={ckpt or 'CKPT'} [dataset=... dataset.root=...] "
+            f"gallery.save={folder} gallery.overwrite=true")
+
+
+# ---- saving ----------------------------------------------------------------------------------------------------
+def check_target(folder: str | Path, overwrite: bool) -> None:
+    """Refuse `gallery.save=folder` when it holds a gallery (unless `overwrite`) or anything else (always)."""
+    folder = Path(folder)
+    if not folder.exists():
+        return
+    if not folder.is_dir():
+        raise ConfigError(f"gallery.save={folder} is a file, not a folder: choose a folder for the gallery")
+    held = sorted(p.name for p in folder.iterdir())
+    if not held:
+        return
+    if not {INFO, INDEX} & set(held):
+        raise ConfigError(f"gallery.save={folder} holds files that are not a gallery ({', '.join(held[:5])}): "
+                          "choose a new or empty folder (gallery.overwrite=true replaces only a gallery)")
+    if not overwrite:
+        raise ConfigError(f"gallery.save={folder} already holds a gallery{_built_from(folder)}: add "
+                          "gallery.overwrite=true to replace it, or choose another gallery.save folder")
+
+
+def _built_from(folder: Path) -> str:
+    try:
+        info = json.loads((folder / INFO).read_text())
+        return f" (built by {info['ckpt']} from {info['split']} of {info['root']})"
+    except (OSError, ValueError, TypeError, KeyError):
+        return ""
+
+
+def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit, record: dict,
+                 overwrite: bool = False) -> dict:
+    """Write the gallery of `split` (its references, in order, are `index`'s rows) into `folder`, whole or not at
+    all; `record` holds what built it (ckpt, model_fingerprint, dataset, reference_spread). Returns gallery.json."""
+    folder = Path(folder)
+    check_target(folder, overwrite)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~umask())  # mkdtemp's 0700 would keep a service run by another user out
+        index.save(tmp / INDEX)
+        info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
+                **index.params, **record, **write_places(tmp, split)}
+        (tmp / INFO).write_text(json.dumps(info, indent=2) + "\n")
+        _move_into_place(tmp, folder, overwrite)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # after an exchange, tmp holds the old gallery
+    return info
+
+
+def _move_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
+    if overwrite and folder.is_dir() and any(folder.iterdir()):
+        check_target(folder, overwrite)  # again: it may have changed while the gallery was built
+        if _exchange(tmp, folder):
+            return
+        old = tmp.with_suffix(".old")
+        os.rename(folder, old)  # a kill before the next rename leaves the old gallery here, whole
+        os.rename(tmp, folder)
+        shutil.rmtree(old, ignore_errors=True)
+        return
+    try:
+        os.rename(tmp, folder)  # onto a missing or empty folder only: a non-empty one refuses
+    except OSError as err:
+        if err.errno in (errno.ENOTEMPTY, errno.EEXIST):
+            raise ConfigError(f"gallery.save={folder}: another gallery was saved there while this one was built; "
+                              "it was kept. Add gallery.overwrite=true to replace it, or choose another "
+                              "gallery.save folder") from None
+        raise
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders in one step (renameat2 RENAME_EXCHANGE); False where the OS or file system cannot."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    if ctypes.get_errno() in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(ctypes.get_errno(), f"could not move the new gallery {a} into place at {b}")
+
+
+# ---- opening ---------------------------------------------------------------------------------------------------
+def read_info(folder: Path, ckpt=None) -> dict:
+    """gallery.json of `folder`, its fields checked."""
+    path = Path(folder) / INFO
+    if not path.is_file():
+        raise FileNotFoundError(f"{folder} holds no saved gallery ({INFO}). Build one from the split whose references "
+                                f"you want to search: python evaluate.py ckpt={ckpt or 'CKPT'} [dataset=... "
+                                f"dataset.root=DIR] gallery.save={folder}")
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        what = "empty" if path.stat().st_size == 0 else f"not complete JSON ({err})"
+        raise ConfigError(f"{path} is {what}: the save that wrote it was interrupted, or it was edited. "
+                          f"{rebuild(folder, ckpt)}") from None
+    if not isinstance(info, dict):
+        raise ConfigError(f"{path} holds a JSON {type(info).__name__}, not a gallery record. {rebuild(folder, ckpt)}")
+    bad = [k for k, kind in FIELDS.items() if not isinstance(info.get(k), kind) or isinstance(info.get(k), bool)]
+    if bad:
+        raise ConfigError(f"{path} lacks {', '.join(bad)} (or holds another type): the gallery was saved by an "
+                          f"older geoloc, which did not record what built it, or the file was edited. "
+                          f"{rebuild(folder, ckpt)}")
+    return info
+
+
+def check_weights(folder: Path, info: dict, fingerprint: str, ckpt) -> None:
+    """The one check that a gallery was built by the weights that will encode the queries."""
+    if info["model_fingerprint"] != fingerprint:
+        raise ConfigError(f"the gallery in {folder} was built with other weights ({info['ckpt']}) than {ckpt}: its "
+                          f"descriptors would not match the queries. Use ckpt={info['ckpt']}, or rebuild the "
+                          f"gallery: python evaluate.py ckpt={ckpt} [dataset=... dataset.root=...] "
+                          f"gallery.save={folder} gallery.overwrite=true (or a new folder)")
+
+
+def check_split(folder: Path, info: dict, split: RetrievalSplit, dataset: str, ckpt) -> None:
+    """Refuse a gallery built from another split than the one being scored: gallery row j must be its reference j."""
+    here = {"dataset": dataset, "num_references": split.num_references, **split_record(split)}
+    differs = [f"{k} {info[k]!r} (gallery) vs {here[k]!r} (this evaluation)"
+               for k in SPLIT_KEYS if k != "references_sha256" and info[k] != here[k]]
+    if not differs and info["references_sha256"] != here["references_sha256"]:
+        differs = ["the reference list: the same number of references, in another order or other files "
+                   "(references_sha256 differs)"]
+    if differs:
+        raise ConfigError(f"the gallery in {folder} was built from another split than the one scored here: "
+                          f"{'; '.join(differs)}. Its row j would not be this split's reference j, so the recall "
+                          f"would be wrong. Evaluate the split it was built from, or rebuild it for this one: "
+                          f"python evaluate.py ckpt={ckpt} [dataset=... dataset.root=...] gallery.save={folder} "
+                          f"gallery.overwrite=true")
+
+
+def open_gallery(folder: str | Path, fingerprint: str, ckpt, device=None, split: RetrievalSplit | None = None,
+                 dataset: str | None = None) -> SavedGallery:
+    """The gallery in `folder`, refused unless the weights of fingerprint `fingerprint` (checkpoint `ckpt`, named in
+    messages) built it and, when `split` is given (evaluate.py; `dataset` its reader), it was built from that
+    split. The torch backend's descriptors go to `device`."""
+    folder = Path(folder)
+    info = read_info(folder, ckpt)
+    check_weights(folder, info, fingerprint, ckpt)
+    if split is not None:
+        check_split(folder, info, split, dataset, ckpt)
+    if not (folder / INDEX).is_file():
+        raise FileNotFoundError(f"the gallery in {folder} lacks {INDEX}. {rebuild(folder, ckpt)}")
+    try:
+        index = GalleryIndex.load(folder / INDEX, device=device)
+        if (len(index), index.dim) != (info["num_references"], info["dim"]):
+            raise ConfigError(f"{folder / INDEX} holds {len(index)} references of dim {index.dim}, but {folder / INFO} "
+                              f"records {info['num_references']} of dim {info['dim']}: one of them was replaced")
+        places = read_places(folder, info)
+    except ValueError as err:  # ConfigError included: the file is named, the way out is added here
+        raise ConfigError(f"{err}. {rebuild(folder, ckpt)}") from err
+    return SavedGallery(folder, info, index, places)

@@ -55,7 +55,7 @@ class QueryLimits:
             raise ValueError(f"max_canvas_side={self.max_canvas_side} is over {OPENCV_SIDE:,}, the most columns "
                              "OpenCV's remap (the inverse polar transform) takes")
 
-    def limits(self) -> "QueryLimits":
+    def limits(self) -> QueryLimits:
         """These limits alone (a config that extends QueryLimits gives its limit keys)."""
         return QueryLimits(self.max_pixels, self.max_canvas_side, self.max_headings, self.max_topk)
 

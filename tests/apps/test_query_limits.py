@@ -11,10 +11,14 @@ import threading
 import time
 
 import httpx
-
 import numpy as np
 import pytest
+from conftest import CONF
 from fastapi.testclient import TestClient
+from hydra import compose, initialize_config_dir
+from test_localize import gallery  # noqa: F401  (a fixture: a 1-epoch TINY checkpoint and its saved gallery)
+from test_serve import RED, FakeLocalizer, assert_still_serving, jpeg, png, serving
+
 from geoloc import cli
 from geoloc.apps.localize import Localizer
 from geoloc.apps.localize import localizer as localizer_module
@@ -22,11 +26,6 @@ from geoloc.apps.query import QueryError, QueryLimits, check_settings
 from geoloc.apps.serve import create_app, upload
 from geoloc.apps.serve.command import ServeConfig
 from geoloc.config import ConfigError
-from hydra import compose, initialize_config_dir
-from test_localize import gallery  # noqa: F401  (a fixture: a 1-epoch TINY checkpoint and its saved gallery)
-from test_serve import GOOD, RED, FakeLocalizer, assert_still_serving, jpeg, png, serving
-
-from conftest import CONF
 
 
 @pytest.fixture
@@ -48,15 +47,16 @@ SMALL_PANO = png(np.full((256, 512, 3), 90, np.uint8))  # a few kB
 
 
 @pytest.mark.parametrize("fov,key,message", [
-    # 512·360/0.1 = 1,843,200 columns: the canvas the 62 kB panorama asked for, 4 GB of zeros at 256 rows
-    ("0.1", "max_canvas_side", r"the upload 'pano.png', a fov=0.1 view 512 columns wide, is placed on a 360° canvas "
-                               r"of 1,843,200 columns \(W·360/fov\), over the limit of 16,384 \(max_canvas_side\): "
-                               r"give the image's true fov, or downscale it to at most 4 columns"),
-    ("0.001", "max_canvas_side", r"canvas of 184,320,000 columns"),  # 278 GiB asked for
+    # 512·360/0.1 = 1,843,200 columns: 1.4 GB of canvas at 256 rows, and an OpenCV assertion past 32,766 columns
+    ("0.1", "max_canvas_side", (r"the upload 'pano.png', a fov=0.1 view 512 columns wide, is placed on a 360° "
+                                r"canvas of 1,843,200 columns \(W·360/fov\), over the limit of 16,384 "
+                                r"\(max_canvas_side\): give the image's true fov, or downscale it to at most 4 "
+                                r"columns")),
+    ("0.001", "max_canvas_side", r"canvas of 184,320,000 columns"),  # 141 GB asked for
     ("1e-300", "max_canvas_side", r"canvas of 1.84e\+305 columns .*true fov$"),
     ("1e-308", "max_canvas_side", r"canvas of inf columns"),  # W·360/fov overflows a float: still a clear 413
-    ("5", "max_canvas_side", r"a fov=5 view 512 columns wide, is placed on a 360° canvas of 36,864 columns.*"
-                        r"over the limit of 16,384"),
+    ("5", "max_canvas_side", (r"a fov=5 view 512 columns wide, is placed on a 360° canvas of 36,864 columns.*"
+                              r"over the limit of 16,384")),
 ])
 def test_a_small_fov_is_refused_before_its_canvas_is_allocated(fake, fov, key, message, monkeypatch):
     allocated = []
@@ -189,7 +189,7 @@ def loaded(gallery):  # noqa: F811
 
 
 def test_the_localizer_checks_before_it_allocates_and_encodes_a_few_headings_at_a_time(loaded, monkeypatch):
-    root, ckpt, folder, loc = loaded
+    root, _, _, loc = loaded
     with pytest.raises(QueryError, match=r"a fov=0.1 view 64 columns wide, is placed on a 360° canvas of 230,400 "
                                          r"columns .*max_canvas_side") as caught:
         loc.localize(np.zeros((16, 64, 3), np.uint8), fov=0.1)
@@ -204,7 +204,7 @@ def test_the_localizer_checks_before_it_allocates_and_encodes_a_few_headings_at_
     image = localizer_module.read_street(root / "streetview/panos/0000013.jpg")
     answer = loc.localize(image, topk=3)
     assert batches == [12, 8]  # 20 candidates, CANDIDATES_PER_PASS at a time
-    inputs, headings = loc.encoder.street_inputs(image, 360.0, None, 20)
+    inputs, _ = loc.encoder.street_inputs(image, 360.0, None, 20)
     scores = (encode(inputs) @ loc.index._descriptors.t()).max(dim=0).values  # every candidate in one pass
     assert [hit["row"] for hit in answer.topk] == scores.argsort(descending=True)[:3].tolist()
     assert answer.topk[0]["score"] == pytest.approx(float(scores.max()), abs=1e-5)

@@ -60,8 +60,8 @@ def localize(section: DictConfig) -> list[dict]:
     answers = []
     with open(out / "localize.jsonl", "a") as lines:
         for path in images:
-            image = read_street(path, lambda width, height: localizer.check(width, height, cfg.fov, cfg.topk,
-                                                                             cfg.heading, str(path)))
+            image = read_street(path, lambda width, height, name=str(path): localizer.check(
+                width, height, cfg.fov, cfg.topk, cfg.heading, name))
             result = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
             if cfg.picture:
                 from geoloc.apps.localize.picture import localization_figure

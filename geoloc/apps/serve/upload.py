@@ -9,7 +9,8 @@ promising more pixels than the data holds is refused, not filled with grey.
 
 from __future__ import annotations
 
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 import numpy as np
 

@@ -54,7 +54,7 @@ def view_canvas(street: np.ndarray, fov_deg: float, heading_deg: float) -> np.nd
     street = _check_image(street, "street view")
     fov = check_fov(fov_deg)
     view_width = street.shape[1]
-    width = int(round(canvas_columns(view_width, fov)))  # >= view_width, as 360 / fov >= 1
+    width = round(canvas_columns(view_width, fov))  # >= view_width, as 360 / fov >= 1
     canvas = np.zeros((street.shape[0], width, *street.shape[2:]), dtype=street.dtype)
     # the view's columns are one run from its first column, wrapping once at the canvas's end: two slice copies
     # (a fancy-indexed scatter of the same columns takes 20-30 times as long on a large panorama)
@@ -73,7 +73,7 @@ def view_canvases(street: np.ndarray, fov_deg: float, headings) -> Iterator[np.n
     street = _check_image(street, "street view")
     fov = check_fov(fov_deg)
     view_width = street.shape[1]
-    width = int(round(canvas_columns(view_width, fov)))
+    width = round(canvas_columns(view_width, fov))
     doubled = np.zeros((street.shape[0], 2 * width, *street.shape[2:]), dtype=street.dtype)
     doubled[:, :view_width] = street  # the view at offset 0 ...
     doubled[:, width:width + view_width] = street  # ... and again one canvas further

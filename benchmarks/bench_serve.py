@@ -5,6 +5,11 @@ Starts `python -m geoloc.cli serve ckpt=... gallery=...` (uvicorn, one process) 
 (bounded by --max-seconds as well). Prints p50 / p99 / mean latency, the throughput and the error count (anything but
 200; it must be 0), first for one client alone (the latency of one request) and then for all clients at once.
 
+--limits measures instead the costliest requests the limits allow (geoloc.apps.query.QueryLimits): a panorama of
+max_pixels searched at max_headings candidate headings, a limited-fov photo whose canvas is max_canvas_side columns
+and max_pixels pixels, and requests just past each limit (which must get 413 at once), one at a time against an idle
+server; for each it prints the latency and the server's peak memory (VmHWM) above its level after the warm-up.
+
 Without --ckpt / --gallery it builds them in --work (default $GEOLOC_CACHE/bench_serve, reused by later runs): the
 default recipe (`python train.py`) on a small synthetic render, stopped after one training step (the weights are
 as good as untrained; speed does not depend on them), and its gallery (`python evaluate.py gallery.save=DIR`).
@@ -12,6 +17,7 @@ The queries are that render's street panoramas, sent as the JPEG files they are.
 
     nice -n 5 python benchmarks/bench_serve.py                      # 4 clients x 10 requests
     nice -n 5 python benchmarks/bench_serve.py --heading 0          # north-aligned: no heading search
+    nice -n 5 python benchmarks/bench_serve.py --limits             # the costliest requests the limits allow
     python benchmarks/bench_serve.py --clients 8 --requests 25 --ckpt RUN/best.pt --gallery DIR --images 'DIR/*.jpg'
 """
 from __future__ import annotations
@@ -56,9 +62,10 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def start_server(ckpt: Path, gallery: Path, port: int, env: dict, log: Path) -> subprocess.Popen:
+def start_server(ckpt: Path, gallery: Path, port: int, env: dict, log: Path,
+                 extra: tuple[str, ...] = ()) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "geoloc.cli", "serve", f"ckpt={ckpt}", f"gallery={gallery}", f"port={port}",
-           "device=cpu"]
+           "device=cpu", *extra]
     print("+", " ".join(cmd), f"> {log}", flush=True)
     server = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 180
@@ -112,6 +119,65 @@ def load(url: str, images: list[tuple[str, bytes]], clients: int, requests: int,
             "mean_ms": float(ms.mean()), "throughput_rps": len(ms) / wall, "wall_s": wall}
 
 
+def memory_mb(pid: int, key: str) -> float:
+    """VmRSS (resident memory now) or VmHWM (its peak since the last reset_peak) of a process, in MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(f"{key}:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no {key} in /proc/{pid}/status: --limits needs Linux")
+
+
+def reset_peak(pid: int) -> None:
+    """Start VmHWM again from the current resident memory (Linux: 5 > /proc/PID/clear_refs)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+
+
+def resized_jpeg(source: bytes, width: int, height: int) -> bytes:
+    """A street image scaled to width x height, as a JPEG (quality 90)."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(source, np.uint8), cv2.IMREAD_COLOR)
+    return cv2.imencode(".jpg", cv2.resize(image, (width, height), interpolation=cv2.INTER_LINEAR),
+                        [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+
+
+def limit_requests(url: str, server: subprocess.Popen, source: bytes) -> None:
+    """The costliest requests the default limits allow, and requests just past them, one at a time: latency, status
+    and the server's peak memory above its level after the warm-up."""
+    from geoloc.apps.query import QueryLimits
+
+    limits = QueryLimits()
+    side, pixels = limits.max_canvas_side, limits.max_pixels
+    pano_w = int((2 * pixels) ** 0.5)  # a 2:1 panorama of max_pixels
+    photo_h = pixels // side  # a fov=90 photo whose canvas is max_canvas_side x photo_h <= max_pixels
+    cases = [  # (what, width, height, form fields, expected status)
+        ("VIGOR-size panorama 2048x1024, heading searched", 2048, 1024, {}, 200),
+        (f"max_pixels panorama {pano_w}x{pano_w // 2}, heading given", pano_w, pano_w // 2, {"heading": "0"}, 200),
+        (f"max_pixels panorama {pano_w}x{pano_w // 2}, heading searched", pano_w, pano_w // 2, {}, 200),
+        (f"fov=90 photo {side // 4}x{photo_h}: canvas {side}x{photo_h}, heading searched", side // 4, photo_h,
+         {"fov": "90"}, 200),
+        ("fov=0.1 on a 512x256 panorama (1,843,200 canvas columns)", 512, 256, {"fov": "0.1"}, 413),
+        ("65,500x2 strip", 65_500, 2, {}, 413),
+        (f"fov=90 photo {side // 4 + 8}x{photo_h}: past max_canvas_side", side // 4 + 8, photo_h, {"fov": "90"}, 413),
+    ]
+    print(f"server resident memory after the warm-up (model, gallery, first requests): "
+          f"{memory_mb(server.pid, 'VmRSS'):.0f} MB", flush=True)
+    with httpx.Client(base_url=url, timeout=600) as http:
+        for what, width, height, fields, expect in cases:
+            data = resized_jpeg(source, width, height)
+            before = memory_mb(server.pid, "VmRSS")
+            reset_peak(server.pid)
+            start = time.perf_counter()
+            answer = http.post("/localize", files={"image": ("q.jpg", data, "image/jpeg")}, data=fields)
+            seconds = time.perf_counter() - start
+            note = "" if answer.status_code == 200 else f": {answer.json()['detail'][:100]}..."
+            print(f"{what} ({len(data) / 1e6:.1f} MB JPEG): {answer.status_code} in {seconds:.2f} s, peak "
+                  f"{memory_mb(server.pid, 'VmHWM') - before:+.0f} MB over the {before:.0f} MB before{note}",
+                  flush=True)
+            if answer.status_code != expect:
+                print(f"  UNEXPECTED: wanted {expect}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--clients", type=int, default=4)
@@ -124,6 +190,8 @@ def main() -> None:
                         default=Path(os.environ.get("GEOLOC_CACHE", Path.home() / ".cache/geoloc")) / "bench_serve")
     parser.add_argument("--gallery-size", type=int, default=200, help="references, when building")
     parser.add_argument("--heading", type=float, help="send this heading (no search over the 36 candidates)")
+    parser.add_argument("--limits", action="store_true", help="the costliest requests the limits allow (docstring)")
+    parser.add_argument("--heading-steps", type=int, help="the server's heading_steps (default the checkpoint's)")
     args = parser.parse_args()
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
            "GEOLOC_CACHE": str(args.work / "cache")}
@@ -136,9 +204,14 @@ def main() -> None:
     images = [(Path(f).name, Path(f).read_bytes()) for f in files]
     print(f"{len(images)} query images, e.g. {files[0]} ({len(images[0][1]):,} bytes)")
     port = free_port()
-    server = start_server(ckpt, gallery, port, env, args.work / "server.log")
+    extra = () if args.heading_steps is None else (f"heading_steps={args.heading_steps}",)
+    server = start_server(ckpt, gallery, port, env, args.work / "server.log", extra)
     url = f"http://127.0.0.1:{port}"
     try:
+        if args.limits:
+            load(url, images, 1, 3, args.max_seconds, {})  # warm-up
+            limit_requests(url, server, images[0][1])
+            return
         fields = {} if args.heading is None else {"heading": str(args.heading)}
         load(url, images, 1, 3, args.max_seconds, fields)  # warm-up: first-call allocations, grid caches
         for clients, requests in ((1, args.requests), (args.clients, args.requests)):

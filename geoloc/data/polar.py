@@ -137,13 +137,17 @@ def aerial_to_polar(img: np.ndarray, out_hw: tuple[int, int] = (112, 616)) -> np
     return _remap(img, map_x, map_y)
 
 
-def street_to_aerial(img: np.ndarray, out_hw: tuple[int, int] = (288, 288)) -> np.ndarray:
+def street_to_aerial(img: np.ndarray, out_hw: tuple[int, int] = (288, 288), wrapped: bool = False) -> np.ndarray:
     """Inverse polar transform (IPT) of an H_s x W_s (x C) panorama to an ``out_hw`` aerial-like image.
 
     Bilinear sampling; the panorama's columns wrap (no seam at south), rows outside it give 0 (the corners).
-    Same channels and dtype as the input.
+    Same channels and dtype as the input. wrapped: ``img`` already ends with a copy of its first column
+    (H_s x (W_s + 1), e.g. a window of a panorama laid twice side by side), so the copy that appends it is skipped.
     """
     img = _check_image(img, "street image")
-    map_x, map_y = street_to_aerial_grid(tuple(img.shape[:2]), _check_hw(out_hw, "out_hw"))
-    wrapped = np.concatenate([img, img[:, :1]], axis=1)
-    return _remap(wrapped, map_x, map_y)
+    if wrapped and img.shape[1] < 2:
+        raise ValueError(f"a wrapped street image ends with a copy of its first column, so it has >= 2 columns; "
+                         f"got shape {img.shape}")
+    in_hw = (img.shape[0], img.shape[1] - 1) if wrapped else tuple(img.shape[:2])
+    map_x, map_y = street_to_aerial_grid(in_hw, _check_hw(out_hw, "out_hw"))
+    return _remap(img if wrapped else np.concatenate([img, img[:, :1]], axis=1), map_x, map_y)

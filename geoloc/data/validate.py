@@ -120,12 +120,15 @@ def _decoded(data: bytes) -> tuple[np.ndarray | None, str | None]:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None
 
 
-def decode_rgb(data: bytes, name: str | Path) -> np.ndarray:
-    """Image bytes as H×W×3 uint8 RGB, complete or refused: DatasetFileError naming `name` and what is wrong."""
+REFETCH = "Re-download or re-extract it (the start-up check dataset.check_files=decode lists every such file)."
+
+
+def decode_rgb(data: bytes, name: str | Path, fix: str = REFETCH) -> np.ndarray:
+    """Image bytes as H×W×3 uint8 RGB, complete or refused: DatasetFileError naming `name`, what is wrong and
+    `fix`, what to do (a dataset file's by default)."""
     image, problem = _decoded(data)
     if problem:
-        raise DatasetFileError(f"{name}: {problem}. Re-download or re-extract it (the start-up check "
-                               "dataset.check_files=decode lists every such file).")
+        raise DatasetFileError(f"{name}: {problem}. {fix}")
     return image
 
 
@@ -153,8 +156,7 @@ def require_complete(path: str | Path) -> None:
         return  # missing or unreadable: the decoder's own error names the file
     problem = completeness_problem(head, tail, size)
     if problem:
-        raise DatasetFileError(f"{path}: {problem}. Re-download or re-extract it (the start-up check "
-                               "dataset.check_files=decode lists every such file).")
+        raise DatasetFileError(f"{path}: {problem}. {REFETCH}")
 
 
 # ---- the cache of checked files ---------------------------------------------------------------------------------

@@ -144,7 +144,7 @@ def test_localize_refuses_a_gallery_of_other_weights_or_without_places(gallery, 
     loc = Localizer.load(ckpt, folder, device="cpu")
     with pytest.raises(ValueError, match="H×W×3 uint8"):
         loc.localize(np.zeros((4, 4), np.uint8))
-    with pytest.raises(ConfigError, match="fov must lie in"):
+    with pytest.raises(ValueError, match=r"fov=0 is outside \(0, 360\]"):
         loc.localize(np.zeros((16, 64, 3), np.uint8), fov=0)
 
 

@@ -24,6 +24,7 @@ import pytest
 import uvicorn
 from fastapi.testclient import TestClient
 from geoloc import cli
+from geoloc.apps.query import QueryLimits, check_settings, check_size
 from geoloc.apps.serve import create_app, upload
 from test_localize import gallery  # noqa: F401  (a fixture: a 1-epoch TINY checkpoint and its saved gallery)
 
@@ -33,15 +34,21 @@ from conftest import REPO
 class FakeLocalizer:
     """The duck-typed interface of geoloc.apps.localize.Localizer; its answer is computed from the pixels it got."""
 
-    def __init__(self, delay: float = 0.0, fail_on: str | None = None):
-        self.delay, self.fail_on = delay, fail_on
+    def __init__(self, delay: float = 0.0, fail_on: str | None = None, limits: QueryLimits | None = None):
+        self.delay, self.fail_on, self.limits = delay, fail_on, limits or QueryLimits()
         self.calls = self.active = self.most_active = 0
         self._counter = threading.Lock()
 
     def info(self) -> dict:
         return {"checkpoint": "fake.pt", "gallery_size": 3, "dim": 8, "device": "cpu"}
 
-    def localize(self, image, fov=360.0, topk=5, name=None, **known) -> dict:
+    def check(self, width, height, fov=None, topk=None, heading=None, name="the image"):
+        """The Localizer's check, on a panorama's canvas (rows H, columns W·360/fov)."""
+        settings = check_settings(fov, topk, heading, self.limits.max_topk)
+        check_size(name, width, height, settings.fov, (height, width * 360.0 / settings.fov), self.limits)
+        return settings
+
+    def localize(self, image, fov=360.0, topk=5, name=None, deadline=None, **known) -> dict:
         with self._counter:
             self.calls += 1
             self.active += 1
@@ -94,13 +101,13 @@ CORRUPT_PNG = png_chunks(8, 8, bytes(range(7, 200)))  # complete chunks, but the
 
 
 @pytest.fixture
-def fake():
-    return FakeLocalizer()
+def client(fake):
+    return TestClient(create_app(fake, max_bytes=1_000_000))
 
 
 @pytest.fixture
-def client(fake):
-    return TestClient(create_app(fake, max_pixels=30_000_000, max_bytes=1_000_000))
+def fake():
+    return FakeLocalizer(limits=QueryLimits(max_pixels=30_000_000))
 
 
 def assert_still_serving(client, fake):
@@ -148,22 +155,27 @@ BAD_UPLOADS = {  # name: (request, status, what the message must say)
     "empty file": ({"files": {"image": ("pano.jpg", b"", "image/jpeg")}}, 400, r"'pano.jpg' is empty \(0 bytes\)"),
     "empty body": ({}, 400, r"the request body is empty: send the street image as the multipart/form-data file"),
     "wrong field": ({"files": {"file": ("pano.png", png(RED), "image/png")}}, 422,
-                    r"form field 'image': Field required \(send the street image as the multipart"),
+                    r"unknown form field 'file': /localize takes the file field image and fov, topk, heading"),
     "truncated jpeg": ({"files": {"image": ("cut.jpg", TRUNCATED_JPEG)}}, 400,
-                       r"'cut.jpg' is damaged: truncated JPEG.*Send the complete file"),
+                       r"the upload 'cut.jpg': truncated JPEG.*Send the complete file"),
     "corrupt png": ({"files": {"image": ("bad.png", CORRUPT_PNG)}}, 400,
-                    r"'bad.png' is a corrupt PNG: its header reads 8x8 but the image data does not decode"),
+                    r"the upload 'bad.png': corrupt image: does not decode\. Send the complete file again"),
     "fov 0": ({**GOOD, "data": {"fov": "0"}}, 422,
-              r"form field 'fov': Input should be greater than 0 \(the horizontal field of view in degrees, in \(0,"),
+              r"form field fov='0' is outside \(0, 360\] \(the horizontal field of view in degrees, in \(0,"),
     "fov 361": ({**GOOD, "params": {"fov": "361"}}, 422,
-                r"query parameter 'fov': Input should be less than or equal to 360 \(the horizontal field of view"),
-    "fov nan": ({**GOOD, "data": {"fov": "nan"}}, 422, r"form field 'fov'"),
-    "fov text": ({**GOOD, "data": {"fov": "wide"}}, 422, r"form field 'fov': Input should be a valid number"),
+                r"query parameter fov='361' is outside \(0, 360\] \(the horizontal field of view"),
+    "fov -1": ({**GOOD, "data": {"fov": "-1"}}, 422, r"form field fov='-1' is outside \(0, 360\]"),
+    "fov nan": ({**GOOD, "data": {"fov": "nan"}}, 422, r"form field fov='nan' is not a finite number"),
+    "fov text": ({**GOOD, "data": {"fov": "abc"}}, 422, r"form field fov='abc' is not a number \(the horizontal"),
     "topk 0": ({**GOOD, "data": {"topk": "0"}}, 422,
-               r"form field 'topk': Input should be greater than or equal to 1 \(how many references to return"),
+               r"form field topk='0' is below 1 \(how many references to return"),
+    "topk text": ({**GOOD, "data": {"topk": "abc"}}, 422, r"form field topk='abc' is not a number"),
+    "topk over max_topk": ({**GOOD, "data": {"topk": "101"}}, 413,
+                           r"topk=101 is over the limit of 100 references an answer lists \(max_topk\)"),
     "heading inf": ({**GOOD, "data": {"heading": "inf"}}, 422,
-                    r"form field 'heading': Input should be a finite number \(the image's bearing in degrees"),
-    "topk 1.5": ({**GOOD, "params": {"topk": "1.5"}}, 422, r"query parameter 'topk': Input should be a valid integer"),
+                    r"form field heading='inf' is not a finite number \(the image's bearing in degrees"),
+    "heading nan": ({**GOOD, "params": {"heading": "nan"}}, 422, r"query parameter heading='nan' is not a finite"),
+    "topk 1.5": ({**GOOD, "params": {"topk": "1.5"}}, 422, r"query parameter topk='1.5' is not an integer"),
 }
 
 
@@ -180,11 +192,11 @@ def test_a_decompression_bomb_is_refused_from_its_header_without_decoding(client
     bomb = decompression_bomb()
     assert len(bomb) < 100_000  # small on the wire: only the header check can stop it
     decoded = []
-    monkeypatch.setattr(upload.cv2, "imdecode", lambda *a: decoded.append(1))
+    monkeypatch.setattr(upload, "decode_rgb", lambda *a, **k: decoded.append(1))
     answer = client.post("/localize", files={"image": ("bomb.png", bomb, "image/png")})
     assert answer.status_code == 413, answer.text
-    assert ("'bomb.png' is 10000x5000 = 50,000,000 pixels, over this server's limit of 30,000,000 (max_pixels): "
-            "downscale it" in answer.json()["detail"])
+    assert ("the upload 'bomb.png' is 10000x5000 = 50,000,000 pixels, over the limit of 30,000,000 (max_pixels): "
+            "downscale it" in answer.json()["detail"]) and answer.json()["key"] == "max_pixels"
     assert decoded == []
     monkeypatch.undo()
     assert_still_serving(client, fake)
@@ -305,9 +317,9 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
 
     class Localizer:
         @classmethod
-        def load(cls, ckpt, gallery_dir, device=None, heading_steps=36):
+        def load(cls, ckpt, gallery_dir, device=None, heading_steps=36, limits=None):
             loads.append((ckpt, gallery_dir, device, heading_steps))
-            return FakeLocalizer()
+            return FakeLocalizer(limits=limits)
 
     monkeypatch.setitem(sys.modules, "geoloc.apps.localize", types.SimpleNamespace(Localizer=Localizer))
     monkeypatch.setattr(uvicorn, "run", lambda app, host, port: runs.append((app, host, port)))
@@ -318,7 +330,7 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
     assert (host, port) == ("127.0.0.1", 8123)
     answer = TestClient(app).post("/localize", **GOOD)  # max_pixels=100 reached the app: 80x40 is over it
     assert answer.status_code == 413
-    assert "80x40 = 3,200 pixels, over this server's limit of 100 (max_pixels)" in answer.json()["detail"]
+    assert "80x40 = 3,200 pixels, over the limit of 100 (max_pixels)" in answer.json()["detail"]
 
 
 @pytest.mark.parametrize("argv,code,message", [

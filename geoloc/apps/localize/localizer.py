@@ -10,18 +10,23 @@ reference keeps its best-scoring candidate: the score ranks the references, the 
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from geoloc.apps.query import (QueryError, QueryLimits, QuerySettings, check_headings, check_settings,
+                                        check_size, image_size)
 from geoloc.config import ConfigError
-from geoloc.data.io import read_rgb
+from geoloc.data.validate import decode_rgb
 from geoloc.data.geo import distance_m
 from geoloc.data.relevance import Relevance
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview import CrossViewEncoder, LocalizationResult, open_gallery
+
+CANDIDATES_PER_PASS = 12  # candidate headings encoded per forward pass: bounds the activations of a heading search
 
 
 class Localizer:
@@ -29,55 +34,79 @@ class Localizer:
     one image with a LocalizationResult.
 
     `localize` only reads the model and the index, so concurrent calls are safe; on a CPU they gain nothing from
-    running at once (the service serialises them)."""
+    running at once (the service serialises them). `limits` bound what one image may cost (query.py)."""
 
     def __init__(self, encoder: CrossViewEncoder, index: GalleryIndex, places, info: dict,
-                 heading_steps: int | None = None):
+                 heading_steps: int | None = None, limits: QueryLimits | None = None):
         self.encoder, self.index, self.places, self.meta = encoder, index, places, info
+        self.limits = limits.limits() if limits is not None else QueryLimits()
         # candidate headings of the search: as asked, else as the checkpoint's dataset config says
-        self.device, self.heading_steps = encoder.device, int(heading_steps or encoder.data.heading_steps)
+        self.device = encoder.device
+        self.heading_steps = check_headings(heading_steps or encoder.data.heading_steps, self.limits)
         self.view = info.get("query_view", "panorama")
         if self.view not in ("panorama", "sphere"):
             raise ConfigError(f"the gallery was built from {info.get('split')}, whose queries are {self.view} "
                               "images; localize takes street panoramas or limited-FoV street photos")
 
     @classmethod
-    def load(cls, ckpt, gallery, device: str | None = None, heading_steps: int | None = None) -> "Localizer":
+    def load(cls, ckpt, gallery, device: str | None = None, heading_steps: int | None = None,
+             limits: QueryLimits | None = None) -> "Localizer":
         """device: None or "auto" (the GPU when there is one), "cpu", "cuda", "cuda:N"; heading_steps: None takes
-        the checkpoint's dataset.heading_steps."""
+        the checkpoint's dataset.heading_steps; limits: QueryLimits (default its defaults)."""
         encoder = CrossViewEncoder.load(ckpt, "localize", device)
         # every file checked, and refused unless these weights built it: each problem names its file
         saved = open_gallery(gallery, encoder.fingerprint, ckpt, device=encoder.device)
-        return cls(encoder, saved.index, saved.places, {**saved.info, "ckpt_loaded": str(ckpt)}, heading_steps)
+        return cls(encoder, saved.index, saved.places, {**saved.info, "ckpt_loaded": str(ckpt)}, heading_steps,
+                   limits)
 
     def info(self) -> dict:
         """What /health and the JSON output say about the loaded model and gallery."""
         return {"ckpt": self.meta.get("ckpt_loaded"), "gallery_size": len(self.index), "dim": self.index.dim,
                 "index": self.index.kind, "positions": self.places.kind, "query_view": self.view,
-                "device": str(self.device), "heading_steps": self.heading_steps}
+                "device": str(self.device), "heading_steps": self.heading_steps, "limits": vars(self.limits)}
+
+    def check(self, width: int, height: int, fov=None, topk=None, heading=None, name: str = "the image",
+              ) -> QuerySettings:
+        """A query's settings as given (numbers or text; None: the default) and its image's size, checked before
+        anything is decoded: the settings, or QueryError naming the setting or the limit (query.py)."""
+        settings = check_settings(fov, topk, heading, self.limits.max_topk)
+        check_size(name, width, height, settings.fov, self.encoder.canvas_shape(height, width, settings.fov, self.view),
+                   self.limits)
+        return settings
 
     @torch.no_grad()
     def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | None = None,
-                 name: str | None = None, path: Path | None = None) -> LocalizationResult:
+                 name: str | None = None, path: Path | None = None, deadline: float | None = None,
+                 ) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
         photo covering `fov` degrees of bearing, horizon band only. heading: its bearing when known (degrees
         clockwise from north); None searches `heading_steps` candidates. path: the file, to find the image among
-        the gallery split's queries (its true position then comes with the answer)."""
+        the gallery split's queries (its true position then comes with the answer). deadline: a time.monotonic()
+        past which the search stops with QueryError (503) instead of encoding its next candidates."""
         if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be an H×W×3 uint8 RGB array, got {getattr(image, 'shape', type(image))} "
                              f"{getattr(image, 'dtype', '')}")
-        if int(topk) != topk or topk < 1:
-            raise ValueError(f"topk must be an int >= 1, got {topk!r}")
-        inputs, headings = self.encoder.street_inputs(image, fov, heading, self.heading_steps, view=self.view)
-        descriptors = self.encoder.encode_street(inputs)
+        query = self.check(image.shape[1], image.shape[0], fov, topk, heading, name or str(path or "the image"))
+        inputs, headings = self.encoder.street_inputs(image, query.fov, query.heading, self.heading_steps,
+                                                      view=self.view)
+        descriptors = torch.cat([self._encode(inputs[start:start + CANDIDATES_PER_PASS], deadline)
+                                 for start in range(0, len(inputs), CANDIDATES_PER_PASS)])
         # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
-        scores, rows = self.index.search(descriptors, min(len(self.index), int(topk)))
-        best = self._merge(scores, rows, headings)[: int(topk)]
-        return LocalizationResult(image=name or (str(path) if path else None), fov_deg=float(fov),
+        scores, rows = self.index.search(descriptors, min(len(self.index), query.topk))
+        best = self._merge(scores, rows, headings)[: query.topk]
+        return LocalizationResult(image=name or (str(path) if path else None), fov_deg=query.fov,
                                   heading_deg=best[0]["heading_deg"],
-                                  heading_source="search" if heading is None else "given",
+                                  heading_source="search" if query.heading is None else "given",
                                   position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,
                                   truth=self._truth(path, best))
+
+    def _encode(self, inputs: torch.Tensor, deadline: float | None) -> torch.Tensor:
+        """The descriptors of a few candidate inputs, unless `deadline` has passed (QueryError 503)."""
+        if deadline is not None and time.monotonic() > deadline:
+            raise QueryError("max_seconds", "the query ran past its time limit before all its candidate headings "
+                                            "were encoded: give the image's heading (heading=...) to skip the "
+                                            "search, or send a smaller image", 503)
+        return self.encoder.encode_street(inputs)
 
     def _merge(self, scores: torch.Tensor, rows: torch.Tensor, headings: np.ndarray) -> list[dict]:
         """Each gallery row's best score over the K candidates (K×k lists), and that candidate's heading; best
@@ -115,10 +144,13 @@ class Localizer:
         return truth
 
 
-def read_street(path: Path) -> np.ndarray:
-    """An image file as H×W×3 uint8 RGB (a clear error for a missing, truncated or non-image file)."""
+def read_street(path: Path, check=None) -> np.ndarray:
+    """An image file as H×W×3 uint8 RGB (a clear error for a missing, truncated or non-image file). check(width,
+    height), e.g. a Localizer's limits, runs on the file's header first, before any pixel is decoded."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
-    return read_rgb(path)
-
+    data = path.read_bytes()
+    if check is not None:
+        check(*image_size(data, str(path))[:2])
+    return decode_rgb(data, path)

@@ -17,6 +17,7 @@ from pathlib import Path
 from omegaconf import MISSING, DictConfig
 
 from geoloc.apps.localize.localizer import Localizer, read_street
+from geoloc.apps.query import QueryError, QueryLimits, QuerySettings, check_settings
 from geoloc.config import ConfigError, checked
 from geoloc.launch.rundir import claimed
 
@@ -24,16 +25,14 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
 @dataclass
-class LocalizeConfig:
-    """localize.py's keys (conf/localize.yaml extends this node: schema/localize)."""
+class LocalizeConfig(QueryLimits, QuerySettings):
+    """localize.py's keys (conf/localize.yaml extends this node: schema/localize): fov, topk and heading are
+    QuerySettings', the limits on one image QueryLimits' (geoloc/apps/query.py, the same keys as `geoloc serve`'s)."""
 
     ckpt: str = MISSING  # a checkpoint written by train.py
     gallery: str = MISSING  # a gallery saved from it: python evaluate.py ckpt=... gallery.save=DIR
     image: str = MISSING  # one image, or a folder of them
     out: str = MISSING  # where localize.jsonl and the pictures go (default: a new folder under outputs/localize/)
-    topk: int = 5
-    fov: float = 360.0  # the image's horizontal field of view in degrees: 360 = a panorama; less = a street photo
-    heading: float | None = None  # its bearing when known (degrees clockwise from north; CVUSA panoramas: 0)
     heading_steps: int | None = None  # candidate headings tried when heading is null; null: the checkpoint's own
     device: str = "auto"
     picture: bool = True  # one PNG per image: the query, the top-k tiles and a map of the candidates
@@ -68,16 +67,24 @@ def refuse_out_holding_inputs(out: Path, images: list[Path]) -> None:
 
 def localize(section: DictConfig) -> list[dict]:
     """Each image's answer as written to localize.jsonl (LocalizationResult.to_json)."""
-    cfg = checked(section, LocalizeConfig, "localize.py")
+    settings = [section.get(key) for key in ("fov", "topk", "heading")]
+    try:  # as the service checks its form fields: first as given (fov=abc, heading=nan), then against max_topk
+        check_settings(*settings)
+        cfg = checked(section, LocalizeConfig, "localize.py")
+        check_settings(cfg.fov, cfg.topk, cfg.heading, cfg.max_topk)
+    except QueryError as err:
+        raise ConfigError(f"localize.py: {err}") from None
     images = images_of(Path(cfg.image))
     out = Path(cfg.out)
     refuse_out_holding_inputs(out, images)
     answers = []
     with claimed(out, role="localization", key="out"):  # one writer per folder; a failed start leaves none
-        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
+        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps,
+                                   limits=cfg)
         with open(out / "localize.jsonl", "a") as lines:
             for path in images:
-                image = read_street(path)
+                image = read_street(path, lambda width, height, name=str(path): localizer.check(
+                    width, height, cfg.fov, cfg.topk, cfg.heading, name))
                 result = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
                 if cfg.picture:
                     from geoloc.apps.localize.picture import localization_figure

@@ -5,12 +5,14 @@
 
 GET /health -> {"status": "ok", **localizer.info()}
 POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama),
-`topk` (>= 1, default 5) and `heading` (degrees clockwise from north when known; default: searched) as form fields
-or query parameters -> localizer.localize(...)'s answer, as JSON.
+`topk` (1 to max_topk, default 5) and `heading` (degrees clockwise from north when known; default: searched) as form
+fields or query parameters, each given once -> localizer.localize(...)'s answer, as JSON.
 
-`localizer` is anything with `localize(image, fov=, topk=, name=)` (image: H×W×3 uint8 RGB; returns a
-LocalizationResult, whose to_json() is the answer, or a JSON-serialisable dict; it gets `heading=` only when the
-request gives one) and `info()` (a JSON-serialisable dict), e.g. geoloc.apps.localize.Localizer.
+`localizer` is anything with `check(width, height, fov=, topk=, heading=, name=)` (the settings as sent, checked
+with the image's size before it is decoded: a QuerySettings, or QueryError naming the setting or the limit),
+`localize(image, fov=, topk=, name=, deadline=)` (image: H×W×3 uint8 RGB; returns a LocalizationResult, whose
+to_json() is the answer, or a JSON-serialisable dict; it gets `heading=` only when the request gives one) and
+`info()` (a JSON-serialisable dict), e.g. geoloc.apps.localize.Localizer.
 Bad input gets a 4xx whose `detail` says what is wrong and what to do; a failure inside the localizer gets a 500
 with its message. Neither stops the server.
 """
@@ -20,35 +22,37 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
+from collections import Counter
 from typing import Annotated
 
-from fastapi import FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 
+from geoloc.apps.query import FOV, HEADING, TOPK, QueryError
 from geoloc.apps.serve.body_limit import BodyLimit
-from geoloc.apps.serve.upload import SEND, UploadError, decode_upload
+from geoloc.apps.serve.upload import SEND, decode_upload
 
 log = logging.getLogger("geoloc.apps.serve")
 
-MAX_PIXELS = 25_000_000  # a 7,072 x 3,536 panorama; VIGOR's are 2,048 x 1,024
 MAX_BYTES = 32 * 2**20
-FOV_RANGE = "the horizontal field of view in degrees, in (0, 360]: 360 for a full panorama (the default)"
-TOPK_RANGE = "how many references to return, an integer >= 1 (default 5)"
-HEADING = ("the image's bearing in degrees clockwise from north, when known (0 for a north-aligned panorama); "
-           "leave it out to have it searched")
-HINTS = {"image": SEND, "fov": FOV_RANGE, "topk": TOPK_RANGE, "heading": HEADING}
+MAX_SECONDS = 10.0  # a query's turn at the network: past it, its heading search stops with a 503
+HINTS = {"image": SEND, "fov": FOV, "topk": TOPK, "heading": HEADING}
+SETTINGS = ("fov", "topk", "heading")
 
 
-def create_app(localizer, max_pixels: int = MAX_PIXELS, max_bytes: int = MAX_BYTES) -> FastAPI:
+def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_SECONDS) -> FastAPI:
     """A FastAPI app answering /health and /localize from `localizer` (module docstring)."""
     app = FastAPI(title="geoloc", summary="Where was this street image taken? Retrieval against a saved gallery.")
     app.add_middleware(BodyLimit, max_bytes=max_bytes)
     app.add_exception_handler(RequestValidationError, readable_validation_error)
+    app.add_exception_handler(QueryError, query_error)
     # One request at a time reaches the decoder and the network. A torch forward pass already uses every core, so
     # two at once on a small CPU only share them (no gain in throughput); one at a time keeps the memory to one
     # decoded image and one set of activations, and each result independent of what else is in flight. Waiting
-    # requests hold a threadpool thread and their spooled upload, nothing more; /health does not wait.
+    # requests hold a threadpool thread and their spooled upload, nothing more; /health does not wait. A turn lasts
+    # at most max_seconds (the localizer's deadline) plus one pass of a few candidate headings.
     one_at_a_time = threading.Lock()
 
     @app.get("/health")
@@ -56,27 +60,34 @@ def create_app(localizer, max_pixels: int = MAX_PIXELS, max_bytes: int = MAX_BYT
         return {"status": "ok", **localizer.info()}
 
     # a sync endpoint: FastAPI runs it in its threadpool, so the event loop stays free while the network runs
-    @app.post("/localize")
+    @app.post("/localize", dependencies=[Depends(each_field_once)])
     def localize(image: Annotated[UploadFile, File(description="the street image: JPEG or PNG")],
-                 fov: Annotated[float | None, Form(gt=0, le=360, description=FOV_RANGE)] = None,
-                 topk: Annotated[int | None, Form(ge=1, description=TOPK_RANGE)] = None,
-                 heading: Annotated[float | None, Form(allow_inf_nan=False, description=HEADING)] = None,
-                 fov_query: Annotated[float | None, Query(alias="fov", gt=0, le=360, description=FOV_RANGE)] = None,
-                 topk_query: Annotated[int | None, Query(alias="topk", ge=1, description=TOPK_RANGE)] = None,
-                 heading_query: Annotated[float | None, Query(alias="heading", allow_inf_nan=False,
-                                                              description=HEADING)] = None) -> Response:
-        fov = one_of("fov", fov, fov_query, 360.0)
-        topk = one_of("topk", topk, topk_query, 5)
-        heading = one_of("heading", heading, heading_query, None)
-        known = {} if heading is None else {"heading": heading}
+                 fov: Annotated[str | None, Form(description=FOV)] = None,
+                 topk: Annotated[str | None, Form(description=TOPK)] = None,
+                 heading: Annotated[str | None, Form(description=HEADING)] = None,
+                 fov_query: Annotated[str | None, Query(alias="fov", description=FOV)] = None,
+                 topk_query: Annotated[str | None, Query(alias="topk", description=TOPK)] = None,
+                 heading_query: Annotated[str | None, Query(alias="heading", description=HEADING)] = None,
+                 ) -> Response:
+        given = {"fov": (fov, fov_query), "topk": (topk, topk_query), "heading": (heading, heading_query)}
+        where = {key: "query parameter" if form is None and query is not None else "form field"
+                 for key, (form, query) in given.items()}
+        sent = {key: one_of(key, form, query) for key, (form, query) in given.items()}
+        filename = image.filename or "image"
         with one_at_a_time:
+            deadline = time.monotonic() + max_seconds
             try:
-                rgb = decode_upload(image.file.read(), image.filename or "image", max_pixels)
-            except UploadError as err:
-                raise HTTPException(err.status, str(err)) from None
+                rgb, query = decode_upload(image.file.read(), filename, lambda width, height: localizer.check(
+                    width, height, name=f"the upload {filename!r}", **sent))
+            except QueryError as err:
+                raise worded(err, where, max_seconds) from None
+            known = {} if query.heading is None else {"heading": query.heading}
             try:
-                result = localizer.localize(rgb, fov=fov, topk=topk, name=image.filename, **known)
+                result = localizer.localize(rgb, fov=query.fov, topk=query.topk, name=image.filename,
+                                            deadline=deadline, **known)
                 body = json.dumps(result.to_json() if hasattr(result, "to_json") else result, allow_nan=False)
+            except QueryError as err:
+                raise worded(err, where, max_seconds) from None
             except Exception as err:  # the server answers and stays up; the traceback goes to its log
                 log.exception("localize failed for %r", image.filename)
                 raise HTTPException(500, f"localization failed: {type(err).__name__}: {err}. The server is still "
@@ -86,11 +97,39 @@ def create_app(localizer, max_pixels: int = MAX_PIXELS, max_bytes: int = MAX_BYT
     return app
 
 
-def one_of(name: str, form_value, query_value, default):
-    given = [value for value in (form_value, query_value) if value is not None]
-    if len(given) == 2:
+def one_of(name: str, form_value, query_value):
+    if form_value is not None and query_value is not None:
         raise HTTPException(422, f"{name} is given both as a form field and as a query parameter: give it once")
-    return given[0] if given else default
+    return query_value if form_value is None else form_value
+
+
+async def each_field_once(request: Request) -> None:
+    """A form field or query parameter given twice, or one this service does not take, is a 422 naming it: a form
+    parser keeps only the last of repeated values, so the answer would silently use one of them."""
+    form = await request.form()  # FastAPI has parsed it for the endpoint's fields: this is that copy
+    for where, items, takes in (("form field", form.multi_items(), HINTS),
+                                ("query parameter", request.query_params.multi_items(), SETTINGS)):
+        for key, count in Counter(key for key, _ in items).items():
+            if key not in takes:
+                raise HTTPException(422, f"unknown {where} {key!r}: /localize takes the file field image and "
+                                         f"{', '.join(SETTINGS)} (form fields or query parameters)")
+            if count > 1:
+                raise HTTPException(422, f"{where} {key!r} is given {count} times: give it once ({HINTS[key]})")
+
+
+def worded(err: QueryError, where: dict, max_seconds: float) -> QueryError:
+    """err with where its setting came from (form field or query parameter), or the server's time limit."""
+    if err.key in where:
+        return QueryError(err.key, f"{where[err.key]} {err}", err.status)
+    if err.key == "max_seconds":
+        return QueryError(err.key, f"{err} (this server stops a query after max_seconds={max_seconds:g} s of "
+                                   "work, so that the next one gets its turn)", err.status)
+    return err
+
+
+async def query_error(request: Request, exc: QueryError) -> JSONResponse:
+    """A bad setting, an image over a limit or an unreadable image: its status, the message, and the key named."""
+    return JSONResponse({"detail": str(exc), "key": exc.key}, status_code=exc.status)
 
 
 async def readable_validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -7,10 +7,14 @@ from dataclasses import dataclass
 
 from omegaconf import MISSING
 
-from geoloc.apps.serve.app import MAX_BYTES, MAX_PIXELS, create_app
+from geoloc.apps.query import QueryLimits
+from geoloc.apps.serve.app import MAX_BYTES, MAX_SECONDS, create_app
 
+LIMITS = QueryLimits()
 USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=auto]
-                    [heading_steps=K] [max_pixels={MAX_PIXELS}] [max_bytes={MAX_BYTES}]
+                    [heading_steps=K] [max_bytes={MAX_BYTES}] [max_seconds={MAX_SECONDS:g}]
+                    [max_pixels={LIMITS.max_pixels}] [max_canvas_side={LIMITS.max_canvas_side}]
+                    [max_headings={LIMITS.max_headings}] [max_topk={LIMITS.max_topk}]
 
   ckpt        a checkpoint written by train.py (best.pt)
   gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
@@ -18,30 +22,40 @@ USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=800
   device      auto (the GPU when there is one, else the CPU), cpu, cuda, cuda:1 ...
   heading_steps  candidate headings tried when a request gives no heading (default: the checkpoint's
                  dataset.heading_steps, 36 unless it was trained otherwise: every 10 degrees)
-  max_pixels  a larger image gets 413, refused from its header before it is decoded
   max_bytes   a larger request body gets 413
+  max_seconds a request's turn at the network: its heading search stops past it with 503
+  max_pixels, max_canvas_side, max_headings, max_topk
+              what one image may cost (geoloc.apps.query.QueryLimits): its pixels and those of the 360° canvas
+              a view of fov degrees is placed on (W·360/fov columns), the canvas's columns and rows, the
+              candidate headings (heading_steps) and topk. An image over a limit gets 413 naming it, read from its
+              header before it is decoded; heading_steps over max_headings is refused at start
 
 POST /localize (multipart field image; fov, topk, heading) and GET /health; see README "Query service"."""
 
 
 @dataclass
-class ServeConfig:
+class ServeConfig(QueryLimits):
+    """`geoloc serve`'s keys; the limits on one image are QueryLimits' (the same keys as localize.py's)."""
+
     ckpt: str = MISSING
     gallery: str = MISSING
     host: str = "127.0.0.1"
     port: int = 8000
     device: str | None = None  # None: the encoder's rule (auto)
     heading_steps: int | None = None  # None: the checkpoint's dataset.heading_steps
-    max_pixels: int = MAX_PIXELS
     max_bytes: int = MAX_BYTES
+    max_seconds: float = MAX_SECONDS
 
     def __post_init__(self):
+        super().__post_init__()
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
         if self.heading_steps is not None and self.heading_steps < 1:
             raise ValueError(f"heading_steps must be >= 1, got {self.heading_steps}")
-        if self.max_pixels < 1 or self.max_bytes < 1:
-            raise ValueError(f"max_pixels and max_bytes must be >= 1, got {self.max_pixels} and {self.max_bytes}")
+        if self.max_bytes < 1:
+            raise ValueError(f"max_bytes must be >= 1, got {self.max_bytes}")
+        if not self.max_seconds > 0:
+            raise ValueError(f"max_seconds must be > 0, got {self.max_seconds}")
 
 
 def main(args: list[str]) -> int:
@@ -53,10 +67,11 @@ def main(args: list[str]) -> int:
     from geoloc.apps.localize import Localizer  # torch and the model code: only once the arguments are good
 
     try:  # once, before the first request: every request shares this model and gallery
-        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps)
-    except FileNotFoundError as err:  # its message names the file and how to make it
+        localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps,
+                                   limits=cfg.limits())
+    except (FileNotFoundError, ValueError) as err:  # its message names the file or the key, and what to do
         print(f"geoloc serve: {err}", file=sys.stderr)
         return 2
-    app = create_app(localizer, max_pixels=cfg.max_pixels, max_bytes=cfg.max_bytes)
+    app = create_app(localizer, max_bytes=cfg.max_bytes, max_seconds=cfg.max_seconds)
     uvicorn.run(app, host=cfg.host, port=cfg.port)  # one worker process: a second would load a second model
     return 0

@@ -30,7 +30,7 @@ from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
 from geoloc.tasks.crossview.transforms import align_reference, horizon_band, to_tensor
-from geoloc.tasks.crossview.views import candidate_headings, check_fov
+from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov
 
 
 class CrossViewEncoder:
@@ -49,13 +49,14 @@ class CrossViewEncoder:
         wanted it: export.py, localize). device: None or "auto" (the GPU when there is one), "cpu", "cuda:N"."""
         from geoloc.tasks.crossview.run import restored_task, stored_config
 
+        device = resolve_device(device)  # a bad device fails before the checkpoint is read
         state = ckpt_io.load(ckpt)
         task_name = OmegaConf.select(OmegaConf.create(state.get("config") or "{}"), "task.name") or "crossview"
         if task_name != "crossview":
             raise ConfigError(f"ckpt={ckpt} is a task={task_name} checkpoint; {use} takes cross-view checkpoints "
                               "(task=crossview) only")
         config = stored_config(state)
-        return cls(restored_task(state, ckpt, config), config, state, ckpt, resolve_device(device))
+        return cls(restored_task(state, ckpt, config), config, state, ckpt, device)
 
     # ---- what it was trained on --------------------------------------------------------------------------------
     @property
@@ -102,12 +103,25 @@ class CrossViewEncoder:
         -> (K×3×H×W query-branch inputs on the CPU, (K,) headings in degrees)."""
         view = self.query_view if view is None else view
         fov = check_fov(fov, "fov")
-        street = horizon_band(image) if view == "sphere" and fov == 360.0 else image
         if heading is None:
             headings = candidate_headings(steps or self.data.heading_steps)
         else:
             headings = np.array([float(heading) % 360.0])
-        return query_inputs(street, self.data, view, fov, headings), headings
+        return query_inputs(self._street(image, fov, view), self.data, view, fov, headings), headings
+
+    def canvas_shape(self, height: int, width: int, fov: float, view: str | None = None) -> tuple[int, float]:
+        """(rows, columns) of the 360° canvas street_inputs places an H×W image of `fov` degrees on, known before
+        anything is decoded or allocated: rows the horizon band's for a full sphere; columns W·360/fov (a float,
+        inf for a vanishing fov)."""
+        view = self.query_view if view is None else view
+        fov = check_fov(fov, "fov")
+        rows = self._street(np.empty((height, 0), np.uint8), fov, view).shape[0]  # no pixels: the rows alone
+        return rows, canvas_columns(width, fov)
+
+    @staticmethod
+    def _street(image: np.ndarray, fov: float, view: str) -> np.ndarray:
+        """The rows of the image that make the street view: a full sphere's horizon band at fov 360."""
+        return horizon_band(image) if view == "sphere" and fov == 360.0 else image
 
     def aerial_input(self, tile: np.ndarray) -> torch.Tensor:
         """tile: H×W×3 uint8 RGB aerial image -> 1×3×H×W reference-branch input on the CPU."""

@@ -24,7 +24,7 @@ from geoloc.eval.keys import KeySet
 from geoloc.eval.recall import check_ks, recall_keys, recall_summary
 from geoloc.eval.scoring import rank
 from geoloc.tasks.crossview.transforms import align_query, to_tensor
-from geoloc.tasks.crossview.views import candidate_headings, check_fov, circular_error_deg, view_canvas
+from geoloc.tasks.crossview.views import candidate_headings, check_fov, circular_error_deg, view_canvases
 
 HEADING_WITHIN_DEG = (10, 20)  # shares of queries within these errors (DSM reports such orientation accuracies)
 HEADING_KEYS = KeySet({"heading_median_deg": 180.0, "heading_mean_deg": 180.0,
@@ -48,7 +48,8 @@ def query_inputs(street: np.ndarray, cfg, view: str, fov_deg: float, headings) -
         raise ConfigError(f"a heading search needs panorama-like queries (view 'panorama' or 'sphere'), got view "
                           f"{view!r}: photos (e.g. drone views) have no bearing geometry")
     fov = check_fov(fov_deg)
-    return torch.stack([to_tensor(align_query(view_canvas(street, fov, h), cfg, view)) for h in headings])
+    return torch.stack([to_tensor(align_query(canvas, cfg, view, wrapped=True))
+                        for canvas in view_canvases(street, fov, headings)])
 
 
 def heading_plan(ks: Iterable[int] = (1, 5, 10)) -> list:

@@ -57,13 +57,15 @@ def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
     return align_query(street, cfg, view), align_reference(aerial, cfg)
 
 
-def align_query(street: np.ndarray, cfg: CrossViewDataConfig, view: str = "panorama") -> np.ndarray:
+def align_query(street: np.ndarray, cfg: CrossViewDataConfig, view: str = "panorama",
+                wrapped: bool = False) -> np.ndarray:
+    """wrapped: the panorama ends with a copy of its first column (a window of views.view_canvases)."""
     s = cfg.aerial_size
     if view == "image":  # a photo: no polar geometry, the square input of the aerial branch's size
         return resize(street, (s, s))
     if cfg.alignment == "ipt":
-        return polar.street_to_aerial(street, (s, s))
-    return resize(street, tuple(cfg.pano_size))
+        return polar.street_to_aerial(street, (s, s), wrapped=wrapped)
+    return resize(street[:, :-1] if wrapped else street, tuple(cfg.pano_size))
 
 
 def align_reference(aerial: np.ndarray, cfg: CrossViewDataConfig) -> np.ndarray:

@@ -4,6 +4,8 @@ the weights' fingerprint, and one rule for the device."""
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -146,9 +148,16 @@ def test_input_shapes_follow_the_data_module(alignment, view, query_hw, referenc
 def test_one_rule_for_the_device(monkeypatch):
     assert resolve_device("cpu") == resolve_device("auto") == resolve_device(None) == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     assert resolve_device(None) == torch.device("cuda") and resolve_device("cuda:1") == torch.device("cuda", 1)
+    with pytest.raises(ValueError, match=r"device='cuda:2' but this machine has 2 CUDA device\(s\): use one of "
+                                         "auto, cpu, cuda, cuda:0, cuda:1$"):
+        resolve_device("cuda:2")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(RuntimeError, match="device='cuda:1' but CUDA is not available.*device=cpu"):
+    with pytest.raises(ValueError, match="device='cuda:1' but CUDA is not available on this machine: use one of "
+                                         "auto, cpu$"):
         resolve_device("cuda:1")
-    with pytest.raises(ValueError, match="device='gpu' is not a device"):
-        resolve_device("gpu")
+    # not a name torch knows, and names torch knows that no geoloc code runs on: the valid names, not a traceback
+    for name in ("gpu", "banana", "meta", "mps", "xpu", "cuda:x"):
+        with pytest.raises(ValueError, match=f"device='{re.escape(name)}' is not a device: use one of auto, cpu$"):
+            resolve_device(name)

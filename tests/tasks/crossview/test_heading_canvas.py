@@ -47,6 +47,36 @@ def test_canvas_matches_a_per_column_brute_force(fov, view_width, heading):
     assert np.array_equal(canvas, brute_canvas(street, fov, heading, width))
 
 
+def test_the_canvas_is_the_view_scattered_to_its_columns():
+    """view_canvas copies the view as one wrapping run of columns: the same canvas as scattering each view column to
+    the canvas column _view_columns gives it, for widths whose ratio is not whole and headings anywhere."""
+    from geoloc.tasks.crossview.views import _view_columns, canvas_columns
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        view_width, fov, heading = int(rng.integers(1, 90)), float(rng.uniform(1, 360)), float(rng.uniform(-720, 720))
+        street = rng.integers(1, 255, (2, view_width, 3), dtype=np.uint8)
+        width = round(canvas_columns(view_width, fov))
+        scattered = np.zeros((2, width, 3), np.uint8)
+        scattered[:, _view_columns(width, view_width, fov, heading)] = street
+        assert np.array_equal(view_canvas(street, fov, heading), scattered), (view_width, fov, heading)
+
+
+@pytest.mark.parametrize("alignment", ["ipt", "polar", "none"])
+def test_the_candidate_inputs_are_each_headings_canvas_aligned(alignment):
+    """query_inputs reads each heading's canvas as a window of one doubled canvas: bit for bit the inputs of
+    aligning view_canvas(street, fov, h) one heading at a time (the definition)."""
+    from geoloc.tasks.crossview.heading import query_inputs
+
+    cfg = CrossViewDataConfig(alignment=alignment, aerial_size=32, pano_size=[16, 64])
+    rng = np.random.default_rng(7)
+    for view_width, fov in ((96, 360.0), (37, 90.0), (50, 127.3), (1, 360.0), (3, 1.5)):
+        street = rng.integers(0, 255, (20, view_width, 3), dtype=np.uint8)
+        headings = np.concatenate([rng.uniform(-400, 400, 6), [0.0, 359.99]])
+        expect = torch.stack([to_tensor(align_query(view_canvas(street, fov, h), cfg)) for h in headings])
+        assert torch.equal(query_inputs(street, cfg, "panorama", fov, headings), expect), (view_width, fov)
+
+
 def test_a_360_view_is_a_circular_roll():
     street = np.random.default_rng(1).integers(0, 255, (5, 616, 3), dtype=np.uint8)
     assert np.array_equal(view_canvas(street, 360, 0), street)  # heading 0: already north-aligned

@@ -80,6 +80,7 @@ def test_onnx_encoders_match_torch_at_two_batch_sizes(exported, branch):
     assert entry["checked_against_torch"]["max_abs_diff"] < 1e-4
 
 
+@pytest.mark.slow
 def test_spec_is_written_and_records_the_preprocessing(exported):
     _, out, spec = exported
     assert sorted(p.name for p in out.iterdir()) == ["encoders.json", "query.onnx", "reference.onnx"]
@@ -92,6 +93,7 @@ def test_spec_is_written_and_records_the_preprocessing(exported):
     assert spec["source"]["ckpt"].endswith("best.pt")
 
 
+@pytest.mark.slow
 def test_existing_files_are_refused_unless_overwrite(exported):
     _, out, _ = exported
     ckpt = out.parent / "best.pt"
@@ -168,6 +170,7 @@ def test_an_opset_torch_does_not_write_is_refused_before_anything(tmp_path, opse
     assert not (tmp_path / "onnx").exists()
 
 
+@pytest.mark.slow
 def test_the_opset_asked_for_is_the_one_written(tmp_path):
     from geoloc.apps.export.onnx_export import supported_opsets
 
@@ -180,6 +183,7 @@ def test_the_opset_asked_for_is_the_one_written(tmp_path):
         assert {o.domain: o.version for o in model.opset_import}[""] == newest
 
 
+@pytest.mark.slow
 def test_a_file_written_at_another_opset_is_refused(tmp_path, monkeypatch):
     """Should the exporter keep its own opset (as its version converter does when it fails), nothing is kept."""
     from geoloc.apps.export import onnx_export

@@ -115,6 +115,7 @@ def test_localize_equals_brute_force_scoring_with_and_without_heading_search(gal
     assert json.loads(json.dumps(searched)) == searched  # JSON as it is
 
 
+@pytest.mark.slow
 def test_a_limited_fov_photo_is_placed_on_the_canvas(gallery):
     root, ckpt, folder = gallery
     loc = Localizer.load(ckpt, folder, device="cpu")
@@ -233,6 +234,7 @@ def test_localize_py_holds_the_lock_of_its_out_folder(gallery, tmp_path):
     assert len(localize(cfg)) == 1 and len((out / "localize.jsonl").read_text().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_gallery_saved_with_a_relative_root_keeps_the_truth_from_another_folder(gallery, tmp_path, monkeypatch):
     root, ckpt, _ = gallery
     work = tmp_path / "work"

@@ -188,6 +188,7 @@ def loaded(gallery):  # noqa: F811
     return root, ckpt, folder, Localizer.load(ckpt, folder, device="cpu", heading_steps=20)
 
 
+@pytest.mark.slow
 def test_the_localizer_checks_before_it_allocates_and_encodes_a_few_headings_at_a_time(loaded, monkeypatch):
     root, _, _, loc = loaded
     with pytest.raises(QueryError, match=r"a fov=0.1 view 64 columns wide, is placed on a 360° canvas of 230,400 "
@@ -210,6 +211,7 @@ def test_the_localizer_checks_before_it_allocates_and_encodes_a_few_headings_at_
     assert answer.topk[0]["score"] == pytest.approx(float(scores.max()), abs=1e-5)
 
 
+@pytest.mark.slow
 def test_heading_steps_over_max_headings_is_refused_at_load(gallery):  # noqa: F811
     _, ckpt, folder = gallery
     with pytest.raises(QueryError, match=r"heading_steps=73 candidate headings is over max_headings=72"):
@@ -218,6 +220,7 @@ def test_heading_steps_over_max_headings_is_refused_at_load(gallery):  # noqa: F
         Localizer.load(ckpt, folder, device="cpu", heading_steps=9, limits=QueryLimits(max_headings=8))
 
 
+@pytest.mark.slow
 def test_the_heading_search_stops_at_the_servers_time_limit(loaded):
     root, _, _, loc = loaded
     image = localizer_module.read_street(root / "streetview/panos/0000013.jpg")
@@ -254,6 +257,7 @@ def test_localize_py_names_a_bad_setting_before_loading_anything(gallery, tmp_pa
         localize(compose_localize(ckpt, folder, root / "streetview/panos/0000013.jpg", tmp_path / "out", override))
 
 
+@pytest.mark.slow
 def test_localize_py_refuses_an_image_over_a_limit_from_its_header(gallery, tmp_path, monkeypatch):  # noqa: F811
     from geoloc.apps.localize.run import localize
 

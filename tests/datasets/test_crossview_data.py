@@ -119,6 +119,7 @@ def test_augment_seed_changes_the_augmentation(tiny_cvusa):
     assert not torch.equal(seed0[(2, 5)]["query"], seed1[(2, 5)]["query"])
 
 
+@pytest.mark.slow
 def test_the_runs_seed_reaches_init_sampling_and_augmentation(tiny_cvusa, tmp_path, monkeypatch):
     """`seed=7` (not dataset.seed, which picks the synthetic world) seeds what a seed sweep must vary."""
     from geoloc.tasks.crossview import run as crossview_run

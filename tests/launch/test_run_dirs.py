@@ -129,6 +129,7 @@ print(json.dumps(dirs))
     assert sweep_a == "multirun/crossview/2025-01-01_12-00-00_1111" and sweep_b.endswith("_2222")
 
 
+@pytest.mark.slow
 def test_a_run_that_fails_before_writing_leaves_no_dir(finished_run, tiny_cvusa, tmp_path):
     run_dir = tmp_path / "outputs" / "run"
     (run_dir / ".hydra").mkdir(parents=True)  # what Hydra writes before the app starts

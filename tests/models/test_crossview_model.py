@@ -180,6 +180,7 @@ def test_without_msae_the_head_is_plain():
     assert model.query(torch.randn(1, 3, 64, 64)).shape == (1, 32)
 
 
+@pytest.mark.slow
 def test_full_width_trunk_matches_vgg16_and_loads_a_local_state_dict(tmp_path):
     reference = vgg16(weights=None)
     path = tmp_path / "vgg16-local.pth"

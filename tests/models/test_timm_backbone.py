@@ -240,6 +240,7 @@ def test_a_vit_input_of_another_size_names_img_size():
         backbone(torch.randn(1, 3, 64, 32))
 
 
+@pytest.mark.slow
 def test_registered_and_timm_imported_only_when_built():
     import geoloc.models.timm_backbone as module
     from geoloc import registry

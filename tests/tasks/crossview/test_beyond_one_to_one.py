@@ -124,6 +124,7 @@ def test_infonce_with_a_learned_temperature_and_similarity_batches(tiny_cvusa, t
     assert state["task"]["loss.log_inv_temperature"] != pytest.approx(torch.tensor(1 / 0.07).log().item(), abs=1e-7)
 
 
+@pytest.mark.slow
 def test_the_monitored_metric_and_its_mode_come_from_config(tiny_cvusa, tmp_path):
     """trainer.monitor picks the metric that selects best.pt; monitor_mode=min keeps the lowest."""
     bests = {}
@@ -142,6 +143,7 @@ def test_the_monitored_metric_and_its_mode_come_from_config(tiny_cvusa, tmp_path
         run.train(cfg)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_the_old_layout_still_evaluates(finished_run, tmp_path):
     """Checkpoints written before the registry (model: {name: msae_vgg16, ...}, queue.* keys) are read into the new
     layout and score the same."""

@@ -80,6 +80,7 @@ def test_the_inputs_are_the_data_modules(finished_run):
                                    encoder.model.reference(gallery[2]["image"][None]))
 
 
+@pytest.mark.slow
 def test_a_full_sphere_is_cut_to_its_horizon_band_as_the_data_module_cuts_it(tmp_path):
     _checkpoint(tmp_path / "best.pt", ["dataset=cvact", "dataset.root=/nowhere"], {"train": "sphere", "val": "sphere"})
     encoder = CrossViewEncoder.load(tmp_path / "best.pt", device="cpu")

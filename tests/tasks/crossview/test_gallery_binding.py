@@ -14,6 +14,8 @@ from geoloc.launch import run
 
 from conftest import compose_evaluate
 
+pytestmark = pytest.mark.slow  # each module trains a run end to end
+
 
 def evaluate(tmp_path, ckpt, root, *extra):
     return run.evaluate(compose_evaluate([f"ckpt={ckpt}", "progress=false", "device=cpu", f"dataset.root={root}",

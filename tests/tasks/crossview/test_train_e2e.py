@@ -48,6 +48,7 @@ def test_kill_and_resume_reproduce_the_uninterrupted_run(tiny_cvusa, tmp_path, m
         assert metrics[key] == pytest.approx(best_epoch_val[f"val/{key}"], abs=1e-9)
 
 
+@pytest.mark.slow
 def test_evaluate_refuses_a_checkpoint_that_does_not_match_its_config(tiny_cvusa, tmp_path):
     run_dir = tmp_path / "run"
     run.train(train_cfg(tiny_cvusa, run_dir, "trainer.max_epochs=1"))
@@ -67,6 +68,7 @@ def test_figures_are_written_after_training(tiny_cvusa, tmp_path):
     assert any((run_dir / "tb").rglob("projector_config.pbtxt"))  # descriptors for the embedding projector
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (REALDATA / "cvusa_mini").is_dir(), reason="../shared/realdata not present")
 def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
     run_dir = tmp_path / "run"

@@ -106,6 +106,7 @@ def test_empty_cities_three_panel_reader(tmp_path):
         EmptyCitiesDataset(tmp_path)[1]
 
 
+@pytest.mark.slow
 def test_class_fractions_tool(tmp_path):
     root = write_tiny_dynamic(tmp_path / "dyn")
     path = root / "class_fractions.json"

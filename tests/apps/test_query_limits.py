@@ -220,6 +220,14 @@ def test_heading_steps_over_max_headings_is_refused_at_load(gallery):  # noqa: F
         Localizer.load(ckpt, folder, device="cpu", heading_steps=9, limits=QueryLimits(max_headings=8))
 
 
+def test_serve_checks_heading_steps_as_the_localizer_does_before_loading():
+    with pytest.raises(QueryError, match=r"heading_steps=73 candidate headings is over max_headings=72"):
+        ServeConfig(ckpt="x.pt", gallery="g", heading_steps=73)
+    with pytest.raises(QueryError, match=r"heading_steps must be an integer >= 1, got 0"):
+        ServeConfig(ckpt="x.pt", gallery="g", heading_steps=0)
+    assert ServeConfig(ckpt="x.pt", gallery="g", heading_steps=8, max_headings=8).heading_steps == 8
+
+
 @pytest.mark.slow
 def test_the_heading_search_stops_at_the_servers_time_limit(loaded):
     root, _, _, loc = loaded

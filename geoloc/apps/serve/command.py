@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from omegaconf import MISSING
 
-from geoloc.apps.query import QueryLimits
+from geoloc.apps.query import QueryLimits, check_headings
 from geoloc.apps.serve.app import MAX_BYTES, MAX_SECONDS, create_app
 
 LIMITS = QueryLimits()
@@ -50,8 +50,8 @@ class ServeConfig(QueryLimits):
         super().__post_init__()
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
-        if self.heading_steps is not None and self.heading_steps < 1:
-            raise ValueError(f"heading_steps must be >= 1, got {self.heading_steps}")
+        if self.heading_steps is not None:
+            check_headings(self.heading_steps, self)  # the Localizer's own check, before anything is loaded
         if self.max_bytes < 1:
             raise ValueError(f"max_bytes must be >= 1, got {self.max_bytes}")
         if not self.max_seconds > 0:

@@ -12,6 +12,7 @@ from geoloc.engine import NonFiniteLossError, Task, Trainer, TrainerConfig, seed
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.sampling import item_rng, split_key
 
+from helpers.kill import run_killed_at
 from toy_task import Points, ScriptedRecall
 
 
@@ -70,17 +71,7 @@ def rows(run_dir):
 
 def killed_at(run_dir, step, monkeypatch):
     """fit(), killed (KeyboardInterrupt) as global step `step` starts."""
-    original = NoisyLine.training_step
-
-    def dying(self, batch, engine):
-        if engine.global_step == step:
-            raise KeyboardInterrupt("simulated kill")
-        return original(self, batch, engine)
-
-    monkeypatch.setattr(NoisyLine, "training_step", dying)
-    with pytest.raises(KeyboardInterrupt):
-        fit(run_dir)
-    monkeypatch.setattr(NoisyLine, "training_step", original)
+    run_killed_at(NoisyLine, step, lambda: fit(run_dir), monkeypatch)
 
 
 def test_kill_and_resume_reproduce_the_uninterrupted_run_bit_for_bit(tmp_path, monkeypatch):

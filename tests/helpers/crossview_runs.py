@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 
-import pytest
 from geoloc.launch import run
 from geoloc.tasks.crossview.task import CrossViewTask
 
 from conftest import TINY, compose_train
+from helpers.kill import run_killed_at
 
 
 def train_cfg(root, run_dir, *extra):
@@ -22,17 +22,7 @@ def val_records(run_dir):
 
 def train_until_killed(cfg, monkeypatch, global_step: int) -> None:
     """run.train(cfg), killed (KeyboardInterrupt) as the step after `global_step` starts."""
-    original = CrossViewTask.training_step
-
-    def dying_step(self, batch, engine):
-        if engine.global_step == global_step:
-            raise KeyboardInterrupt("simulated kill")
-        return original(self, batch, engine)
-
-    monkeypatch.setattr(CrossViewTask, "training_step", dying_step)
-    with pytest.raises(KeyboardInterrupt):
-        run.train(cfg)
-    monkeypatch.setattr(CrossViewTask, "training_step", original)
+    run_killed_at(CrossViewTask, global_step, lambda: run.train(cfg), monkeypatch)
 
 
 def task_of(cfg):

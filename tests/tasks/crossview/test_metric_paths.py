@@ -29,7 +29,7 @@ from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.datasets import build_eval
 from geoloc.tasks.crossview.run import restored_task, stored_config
 from omegaconf import OmegaConf
-from torch import nn
+from plugins.tiny_cnn import TinyCNN
 
 from conftest import TINY, compose_evaluate, compose_train, write_cvusa
 
@@ -37,23 +37,9 @@ pytest.importorskip("faiss")
 pytestmark = pytest.mark.slow  # three one-epoch trainings and about thirty evaluations: about 45 s on 2 cores
 
 
-class TwoConvs(nn.Module):
-    """Two strided convolutions (no normalisation): descriptors that differ from image to image at any weights."""
-
-    def __init__(self, width: int):
-        super().__init__()
-        self.channels = [width, 2 * width]
-        self.stage1 = nn.Sequential(nn.Conv2d(3, width, 3, stride=2, padding=1), nn.ReLU())
-        self.stage2 = nn.Sequential(nn.Conv2d(width, 2 * width, 3, stride=2, padding=1), nn.ReLU())
-
-    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        fine = self.stage1(x)
-        return [fine, self.stage2(fine)]
-
-
 @register("backbone", "metric_paths_convs")
 def metric_paths_convs(width: int = 8, pretrained: bool = False, weights_path=None, batchnorm: bool = False):
-    return TwoConvs(int(width))
+    return TinyCNN(int(width))  # two strided convolutions: descriptors differ from image to image at any weights
 
 
 NET = [t for t in TINY if not t.startswith(("dataset=", "backbone.", "head"))] + [

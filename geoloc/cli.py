@@ -27,13 +27,16 @@ SCRIPTS = {  # name: (the entry point in the repository, what it does)
 }
 SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
     "serve": ("geoloc.apps.serve.command", "answer POST /localize and GET /health over HTTP", "serve"),
+    "robustness": ("geoloc.apps.robustness", "one table of a checkpoint at each FoV, heading known / unknown, with "
+                   "distractors and on another dataset", None),
 }
 
 
 def usage() -> str:
     lines = ["usage: geoloc SUBCOMMAND key=value ...   (geoloc SUBCOMMAND --help for its keys)", "", "subcommands:"]
-    lines += [f"  {name:10s}{what} (python {script})" for name, (script, what) in SCRIPTS.items()]
-    lines += [f"  {name:10s}{what} (pip install -e \".[{extra}]\")" for name, (_, what, extra) in SUBCOMMANDS.items()]
+    lines += [f"  {name:12s}{what} (python {script})" for name, (script, what) in SCRIPTS.items()]
+    lines += [f"  {name:12s}{what}" + (f" (pip install -e \".[{extra}]\")" if extra else "")
+              for name, (_, what, extra) in SUBCOMMANDS.items()]
     return "\n".join(lines)
 
 
@@ -81,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError as err:
         if err.name and err.name.split(".")[0] in ("geoloc",):
             raise
-        print(f"geoloc {name} needs the package {err.name!r}: pip install -e \".[{extra}]\"", file=sys.stderr)
+        print(f"geoloc {name} needs the package {err.name!r}: pip install -e \".{f'[{extra}]' if extra else ''}\"",
+              file=sys.stderr)
         return 1
     if any(arg in ("-h", "--help") for arg in args):
         print(module.USAGE)

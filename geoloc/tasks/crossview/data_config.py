@@ -21,7 +21,7 @@ class CrossViewDataConfig:
     VIGOR's `setting`, the synthetic world's `preset`) go to its reader, registered under `name`
     (geoloc/datasets/), which checks them against its signature."""
 
-    name: str = "synthetic"  # a registered reader: synthetic | cvusa | cvact | vigor | u1652 | a plug-in's
+    name: str = "synthetic"  # a registered reader: synthetic | cvusa | cvact | vigor | u1652 | folder | a plug-in's
     module: str | None = None  # a plug-in reader's module (docs/extending.md)
     root: str | None = None  # null = the embedded synthetic data, for the readers that have it
     split: str = "val"  # the split evaluate.py scores

@@ -113,10 +113,15 @@ class CrossViewPairs(Dataset):
 class ViewImages(Dataset):
     """One side of an evaluation split, for galleries that are not one-to-one: item {"image": 3×H×W float,
     "index": i}. `view` is "aerial" for aerial images (the reference branch's input) or the query view of the
-    split's ground-side images ("panorama", "sphere", "image")."""
+    split's ground-side images ("panorama", "sphere", "image").
 
-    def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig):
+    `heading_search` (ground-side panoramas under dataset.random_heading): image i is seen at heading
+    eval_heading(i) with dataset.fov, item["image"] is its K×3×H×W candidate inputs and item["heading"] the true
+    heading in degrees, as CrossViewPairs gives them."""
+
+    def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig, heading_search: bool = False):
         self.paths, self.view, self.cfg = list(paths), view, cfg
+        self.heading_search = heading_search
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -127,6 +132,11 @@ class ViewImages(Dataset):
             image = align_reference(read_rgb(self.paths[index]), self.cfg)
         else:
             street = load_view(self.paths[index], self.view)
+            if self.heading_search:
+                heading = eval_heading(index)
+                candidates, _ = query_candidates(crop_view(street, self.cfg.fov, heading), self.cfg, self.view,
+                                                 self.cfg.fov, self.cfg.heading_steps)
+                return {"image": candidates, "index": index, "heading": heading}
             if self.view != "image":
                 street = north_window(street, self.cfg.fov, 0.0)
             image = align_query(street, self.cfg, self.view)
@@ -148,10 +158,12 @@ class EvalData:
 
 
 def known_heading(data: EvalData) -> EvalData:
-    """`data` with its pairs seen at the known heading (north), one query image each: what the figures show."""
-    if data.pairs is None or not data.pairs.heading_search:
-        return data
-    return replace(data, pairs=CrossViewPairs(data.split, data.pairs.cfg, train=False))
+    """`data` with its queries seen at the known heading (north), one query image each: what the figures show."""
+    if data.pairs is not None and data.pairs.heading_search:
+        return replace(data, pairs=CrossViewPairs(data.split, data.pairs.cfg, train=False))
+    if data.queries is not None and data.queries.heading_search:
+        return replace(data, queries=ViewImages(data.queries.paths, data.queries.view, data.queries.cfg))
+    return data
 
 
 def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
@@ -161,13 +173,35 @@ def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augme
 
 def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str) -> EvalData:
     """What validation and evaluation read of `split`: its pairs (one-to-one) or its queries and gallery apart."""
-    data = read_split(cfg, reader, split)
+    return eval_sets(cfg, read_split(cfg, reader, split))
+
+
+def eval_sets(cfg: CrossViewDataConfig, data: RetrievalSplit) -> EvalData:
+    """The EvalData of a split already read (build_eval; a gallery padded with distractors: `padded`)."""
     if data.one_to_one:
         return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading))
-    if cfg.random_heading:
-        raise ConfigError(f"dataset {cfg.name!r}: evaluation with an unknown heading (dataset.random_heading=true) "
-                          "scores one-to-one splits (CVUSA, CVACT, synthetic) only; evaluate this split with "
-                          "dataset.random_heading=false (a known heading, north at the centre)")
     reference_view = "image" if data.aerial_queries else "aerial"
-    return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg),
+    return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg, heading_search=cfg.random_heading),
                     references=ViewImages(data.references, reference_view, cfg))
+
+
+def padded(split: RetrievalSplit, distractors: list[Path]) -> RetrievalSplit:
+    """`split` with `distractors` (references of other places) appended to its gallery, as University-160k pads
+    University-1652's: every query keeps its relevant references, and a distractor is relevant to none. The tile
+    geometry and positions are left out (they describe the split's own references only); a split whose relevance
+    comes from positions (the radius rule) cannot be padded, as a distractor has none."""
+    if split.relevance_radius_m is not None:
+        raise ConfigError(f"{split.name}: its relevance is a radius around positions, and distractor tiles carry "
+                          "none; pad the gallery of a split without the radius rule, or evaluate it without "
+                          "distractors")
+    if split.aerial_queries:
+        raise ConfigError(f"{split.name}: its gallery holds photos, not aerial tiles; distractor tiles do not apply")
+    references = [*split.references, *distractors]
+    labels = {}
+    if split.query_labels is not None:  # each distractor a place of its own, which no query has
+        fresh = int(max(split.reference_labels.max(), split.query_labels.max())) + 1
+        labels = {"query_labels": split.query_labels, "reference_labels": np.concatenate(
+            [split.reference_labels, fresh + np.arange(len(distractors))])}
+    return RetrievalSplit(name=f"{split.name} + {len(distractors)} distractors", root=split.root,
+                          queries=split.queries, references=references, positives=split.positives,
+                          semi_positives=split.semi_positives, query_view=split.query_view, **labels)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,7 +84,10 @@ class Places:
         """The split's line for this image file, or None when it is not one of the split's queries."""
         if image is None:
             return None
-        return self.queries.get(_rel(Path(image).resolve(), self.root.resolve()))
+        # a dataset folder of links (images linked in from elsewhere) names them by the link: look the image up
+        # under its own path first, then with links followed
+        plain = self.queries.get(_rel(Path(os.path.abspath(image)), Path(os.path.abspath(self.root))))
+        return plain if plain is not None else self.queries.get(_rel(Path(image).resolve(), self.root.resolve()))
 
     def position_of(self, line: dict) -> np.ndarray | None:
         if self.kind is None or POSITION_KEYS[self.kind][0] not in line:

@@ -14,7 +14,7 @@ from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview import gallery
 from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
                                            parse_evaluation, parse_training)
-from geoloc.tasks.crossview.datasets import build, build_eval, known_heading
+from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, known_heading
 from geoloc.tasks.crossview.gallery_folder import check_target
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state
 from geoloc.tasks.crossview.task import CrossViewTask
@@ -72,10 +72,13 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     return score(run, task)
 
 
-def score(run: CrossViewEvaluation, task: CrossViewTask) -> dict:
+def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | None = None) -> dict:
+    """The metrics of `task` on the split `run` names, or on `eval_data` when given (the robustness table's gallery
+    padded with distractors: datasets.padded)."""
     if run.gallery.save and dist.is_main():  # before the data is read: a taken folder costs nothing
         check_target(run.gallery.save, run.gallery.overwrite)
-    eval_data = build_eval(run.data, run.reader, run.data.split)
+    if eval_data is None:
+        eval_data = build_eval(run.data, run.reader, run.data.split)
     task.validate_on(eval_data.split)
     trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress),
                       run_dir=run.run_dir or ".")

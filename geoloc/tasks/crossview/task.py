@@ -126,31 +126,31 @@ class CrossViewTask(Task):
 
     def validation_step(self, batch, loader: str | None = None):
         if loader is None and "heading" in batch:  # unknown heading: B×K×3×H×W candidate inputs per query
-            candidates = batch["query"]
-            # B images at a time, as without the search: K·B at once would hold K times the activations
-            flat = candidates.flatten(0, 1)
-            query = torch.cat([self.model.query(part) for part in flat.split(candidates.shape[0])])
-            query = query.unflatten(0, candidates.shape[:2])
-            return {"query": query, "reference": self.model.reference(batch["reference"]), "index": batch["index"],
+            return {"query": candidate_descriptors(self.model.query, batch["query"]),
+                    "reference": self.model.reference(batch["reference"]), "index": batch["index"],
                     "heading": batch["heading"]}
         if loader is None:
             query, reference = self.model(batch["query"], batch["reference"])
             return {"query": query, "reference": reference, "index": batch["index"]}
         query_encoder, reference_encoder = self.model.encoders(self.split is not None and self.split.aerial_queries)
+        if loader == "query" and "heading" in batch:  # the queries apart, each at K candidate headings
+            return {"descriptor": candidate_descriptors(query_encoder, batch["image"]), "index": batch["index"],
+                    "heading": batch["heading"]}
         encoder = query_encoder if loader == "query" else reference_encoder
         return {"descriptor": encoder(batch["image"]), "index": batch["index"]}
 
     def validation_epoch_end(self, outputs):
         if "query" in outputs and isinstance(outputs["query"], dict):  # two loaders
             query, reference = outputs["query"]["descriptor"], outputs["reference"]["descriptor"]
+            heading = outputs["query"].get("heading")
         else:
-            query, reference = outputs["query"], outputs["reference"]
+            query, reference, heading = outputs["query"], outputs["reference"], outputs.get("heading")
         # Non-finite descriptors raise; a collapse (ties count in the query's favour, so one shared descriptor would
         # score R@1 = 100%) reports every metric at its worst. The same checks guard the saved-gallery path.
         if query.ndim == 3:  # Q×K×D: each query at K candidate headings (geoloc/tasks/crossview/heading.py)
             spread = check_descriptors(query.flatten(0, 1), reference)
             relevance = None if self.split is None else self.split.relevance
-            return guarded(lambda: heading_metrics(query, reference, outputs["heading"], relevance=relevance), spread,
+            return guarded(lambda: heading_metrics(query, reference, heading, relevance=relevance), spread,
                            heading_plan())
         spread = check_descriptors(query, reference)
         if self.split is None:  # descriptors without their split: query i matches reference i
@@ -158,3 +158,10 @@ class CrossViewTask(Task):
             return guarded(lambda: scored_metrics(query, reference, relevance), spread,
                            metric_plan(relevance, (1, 5, 10), located=False))
         return guarded(lambda: split_metrics(query, reference, self.split), spread, split_plan(self.split))
+
+
+def candidate_descriptors(encoder, candidates: torch.Tensor) -> torch.Tensor:
+    """B×K×3×H×W candidate inputs (K headings per query) -> B×K×D descriptors, encoded B images at a time as
+    without the search: K·B at once would hold K times the activations."""
+    flat = candidates.flatten(0, 1)
+    return torch.cat([encoder(part) for part in flat.split(candidates.shape[0])]).unflatten(0, candidates.shape[:2])

@@ -178,7 +178,6 @@ def heading_test_split(root: str, split: str, view: str = "panorama") -> Retriev
     ({"fov": 0}, r"dataset.fov must lie in \(0, 360\]"),
     ({"fov": 400}, r"dataset.fov must lie in \(0, 360\]"),
     ({"heading_steps": 0}, "dataset.heading_steps must be >= 1"),
-    ({"random_heading": True}, "one-to-one splits"),
     ({"fov": 90, "view": "image", "alignment": "none"}, "photo queries"),
 ])
 def test_bad_heading_settings_say_what_to_do(tiny_cvusa, overrides, match):
@@ -214,3 +213,39 @@ def test_a_checkpoint_from_before_the_heading_keys_still_resumes_at_their_old_va
     narrower = compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={tmp_path}", "dataset.fov=90"])
     assert resume.config_differences(canonical_config(stored), canonical_config(narrower), allowed) == [
         "dataset.fov: 360.0 → 90.0"]
+
+
+def test_the_heading_search_scores_queries_apart_as_it_scores_pairs(tiny_cvusa, tmp_path, one_thread, monkeypatch):
+    """A split that is not one-to-one (its queries and gallery read apart: VIGOR, your own data, a padded gallery)
+    searches the same candidate headings: on a one-to-one split read both ways, the metrics are the same."""
+    from conftest import tiny_task
+    from geoloc.engine import Trainer, TrainerConfig
+    from geoloc.tasks.crossview.datasets import EvalData, eval_sets
+    from helpers.crossview_runs import split_of
+
+    cfg = tiny_cfg(tiny_cvusa, fov=90, random_heading=True, heading_steps=4)
+    split = split_of(cfg, "val")
+    pairs = eval_sets(cfg, split)
+    apart = EvalData(split, queries=ViewImages(split.queries, "panorama", cfg, heading_search=True),
+                     references=ViewImages(split.references, "aerial", cfg))
+    item = apart.queries[2]
+    assert item["image"].shape[0] == 4 and item["heading"] == eval_heading(2)
+    assert torch.equal(item["image"], pairs.pairs[2]["query"])
+    from geoloc.eval import keys
+
+    monkeypatch.setattr(keys, "COLLAPSE_SPREAD", 0.0)  # an untrained tiny network: score it anyway
+    task = tiny_task()
+    task.validate_on(split)
+    trainer = Trainer(TrainerConfig(device="cpu", num_workers=0, progress=False), run_dir=tmp_path)
+    by_pairs, by_sides = (trainer.validate(task, task.val_dataloaders(data, 3, trainer.engine))
+                          for data in (pairs, apart))
+    assert "heading_median_deg" in by_sides and by_sides == pytest.approx(by_pairs)
+    assert by_sides["heading_median_deg"] < 180 and by_sides["R@5"] > 0  # scored, not reported at its worst
+
+
+def test_a_split_that_is_not_one_to_one_evaluates_with_an_unknown_heading(tiny_cvusa):
+    section = {"name": "heading_test_split", "root": str(tiny_cvusa), "aerial_size": 32, "pano_size": [16, 64],
+               "fov": 180, "random_heading": True, "heading_steps": 3}
+    data = eval_data_of(section, "val")
+    assert data.pairs is None and data.queries[1]["image"].shape == (3, 3, 32, 32)
+    assert data.queries[1]["heading"] == eval_heading(1) and data.references[1]["image"].shape == (3, 32, 32)

@@ -1,0 +1,165 @@
+"""One checkpoint under every test condition the field reports: field of view, known or unknown heading, a gallery
+padded with distractor tiles of other places, and another dataset. Each cell is evaluate.py's own path: its config
+composed from conf/evaluate.yaml with the condition's overrides (`dataset.fov=90 dataset.random_heading=true ...`),
+config.parse_evaluation, then run.score; nothing here ranks or scores.
+
+Conditions, in table order:
+- for the gallery as it is, then padded with `distractors` tiles (University-160k style: references of other
+  places, relevant to no query), each FoV in `fovs`, the heading known (the view at north) and unknown (searched
+  over `heading_steps` candidate headings, 360·k/K, docs/heading.md);
+- a cross-dataset row per `cross` entry (evaluate.py overrides, e.g. ["dataset=vigor"]): that dataset's evaluation
+  split at FoV 360, heading known.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from geoloc.config import ConfigError
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.tasks.crossview.config import parse_evaluation
+from geoloc.tasks.crossview.datasets import eval_sets, padded, read_split
+from geoloc.tasks.crossview.run import restored_task, score, stored_config
+
+KEYS = ("R@1", "R@5", "R@1%")  # the recall columns
+HEADING_KEY = "heading_median_deg"
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One row: evaluate.py's overrides for it (the dataset and test condition), and the gallery's padding."""
+
+    overrides: tuple
+    fov: float
+    unknown_heading: bool
+    distractors: int = 0
+    cross: bool = False
+
+    @property
+    def heading(self) -> str:
+        return "unknown" if self.unknown_heading else "known"
+
+
+@dataclass
+class Plan:
+    """What `robustness` evaluates: see the module docstring. `dataset`: evaluate.py's overrides naming the data of
+    the main rows (empty: the checkpoint's own dataset and split); `distractor_split`: the split of the same dataset
+    whose references pad the gallery (the first `distractors` of them, in the reader's order)."""
+
+    fovs: list[float] = field(default_factory=lambda: [360.0, 180.0, 90.0, 70.0])
+    heading_steps: int = 12
+    distractors: int = 1000
+    distractor_split: str = "train"
+    dataset: list[str] = field(default_factory=list)
+    cross: list[list[str]] = field(default_factory=list)
+
+    def conditions(self) -> list[Condition]:
+        padding = [0] + ([self.distractors] if self.distractors > 0 else [])
+        rows = [Condition((*self.dataset, *test_condition(fov, unknown, self.heading_steps)), fov, unknown, count)
+                for count in padding for fov in self.fovs for unknown in (False, True)]
+        for cross in self.cross:
+            rows.append(Condition((*cross, *test_condition(360.0, False, self.heading_steps)), 360.0, False,
+                                  cross=True))
+        return rows
+
+
+def test_condition(fov: float, unknown_heading: bool, heading_steps: int) -> tuple[str, ...]:
+    """evaluate.py's overrides for one field of view and heading."""
+    return (f"dataset.fov={float(fov)}", f"dataset.random_heading={str(unknown_heading).lower()}",
+            f"dataset.heading_steps={heading_steps}")
+
+
+def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):
+    """evaluate.py's config for `overrides`, composed from conf/evaluate.yaml as `python evaluate.py` composes it."""
+    from hydra import compose, initialize_config_dir
+
+    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends)
+
+    conf = Path(__file__).resolve().parents[3] / "conf"
+    if not (conf / "evaluate.yaml").is_file():
+        raise ConfigError(f"robustness composes evaluate.py's config from conf/ of a geoloc checkout, and {conf} "
+                          "holds none: install geoloc from its repository with pip install -e .")
+    with initialize_config_dir(str(conf), version_base="1.3"):
+        return compose("evaluate", overrides=[f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",
+                                              f"progress={str(progress).lower()}", *overrides])
+
+
+def evaluate_conditions(ckpt: str, plan: Plan, device: str = "auto", num_workers: int = 0,
+                        progress: bool = False, on_row=None) -> list[dict]:
+    """[{"condition": Condition, "split": name, "distractors": tiles added, "metrics": evaluate.py's metrics}] for
+    each of plan.conditions() (fewer distractors than asked where the source split has fewer tiles); the network is
+    built once from `ckpt`. on_row(row) is called as each row is done."""
+    state = ckpt_io.load(ckpt)
+    stored = stored_config(state)
+    conditions = plan.conditions()
+    runs = [parse_evaluation(evaluate_config(ckpt, c.overrides, device, num_workers, progress), stored)
+            for c in conditions]  # every condition's config checked before anything is evaluated
+    task = restored_task(state, ckpt, stored)
+    rows, distractor_paths = [], {}
+    for condition, run in zip(conditions, runs):
+        eval_data = None
+        if condition.distractors:
+            split = read_split(run.data, run.reader, run.data.split)
+            if condition.distractors not in distractor_paths:
+                distractor_paths[condition.distractors] = distractor_tiles(run, split, plan.distractor_split,
+                                                                           condition.distractors)
+            eval_data = eval_sets(run.data, padded(split, distractor_paths[condition.distractors]))
+        metrics = score(run, task, eval_data)
+        row = {"condition": condition, "split": eval_data.split.name if eval_data else _split_name(run),
+               "distractors": len(distractor_paths.get(condition.distractors, ())), "metrics": metrics}
+        rows.append(row)
+        if on_row is not None:
+            on_row(row)
+    return rows
+
+
+def distractor_tiles(run, split, distractor_split: str, count: int) -> list[Path]:
+    """The first `count` references of `distractor_split` of the evaluated dataset: other places, none of them in
+    `split`'s gallery."""
+    if distractor_split == run.data.split:
+        raise ConfigError(f"distractor_split={distractor_split} is the evaluated split itself: its tiles are the "
+                          "queries' own places; pad with another split (train)")
+    source = read_split(run.data, run.reader, distractor_split)
+    shared = set(source.references) & set(split.references)
+    if shared:
+        raise ConfigError(f"distractor_split={distractor_split} shares {len(shared)} tiles with the evaluated split "
+                          f"{split.name} (e.g. {sorted(shared)[0]}): a distractor must show another place")
+    return source.references[:count]
+
+
+def _split_name(run) -> str:
+    return f"{run.data.name}/{run.data.split}"
+
+
+def cell(metrics: dict, key: str) -> str:
+    value = metrics.get(key)
+    if value is None:
+        return "-"
+    return f"{value:.1f}" if key == HEADING_KEY else f"{100 * value:.2f}"
+
+
+def markdown(rows: list[dict], plan: Plan, ckpt: str, seconds: float) -> str:
+    """The table: recall in %, the median heading error in degrees (unknown heading only)."""
+    lines = [f"Robustness of `{ckpt}` ({seconds:.0f} s). Recall in %; unknown heading: searched over "
+             f"{plan.heading_steps} candidate headings (every {360 / plan.heading_steps:g}°), each query at a "
+             "fixed pseudo-random true heading (`views.eval_heading`); the heading error is the median over queries "
+             "of the best candidate's circular error to it.", "",
+             "| split | gallery | FoV | heading | " + " | ".join(KEYS) + " | median heading error (°) |",
+             "|---|---|---|---|" + "---|" * len(KEYS) + "---|"]
+    for row in rows:
+        c, m = row["condition"], row["metrics"]
+        gallery = f"{m.get('num_references', '?')} tiles" + (f" ({row['distractors']} distractors)"
+                                                             if row["distractors"] else "")
+        split = row["split"].split(" + ")[0] + (" (cross-dataset)" if c.cross else "")
+        lines.append(f"| {split} | {gallery} | {c.fov:g} | {c.heading} | "
+                     + " | ".join(cell(m, k) for k in KEYS) + f" | {cell(m, HEADING_KEY)} |")
+    return "\n".join(lines) + "\n"
+
+
+def as_json(rows: list[dict], plan: Plan, ckpt: str, seconds: float) -> dict:
+    return {"ckpt": str(ckpt), "seconds": round(seconds, 1), "heading_steps": plan.heading_steps,
+            "distractor_split": plan.distractor_split,
+            "rows": [{"split": r["split"], "fov": r["condition"].fov, "heading": r["condition"].heading,
+                      "distractors": r["distractors"], "cross_dataset": r["condition"].cross,
+                      "overrides": list(r["condition"].overrides), "metrics": r["metrics"]} for r in rows]}

@@ -1,0 +1,86 @@
+"""`geoloc robustness`: every cell of its table equals a separate evaluate.py run of the same condition (a padded
+gallery through a reader that builds it independently); its files are written whole and never replaced unasked."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from geoloc.apps.robustness import robustness, split_args
+from geoloc.config import ConfigError
+from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.datasets.cvusa import cvusa
+from geoloc.launch import run
+from geoloc.registry import register
+
+from conftest import TINY, compose_evaluate, compose_train, write_cvusa
+
+DISTRACTORS = 5
+
+
+@register("dataset", "robustness_padded_test")
+def padded_test(root: str, split: str) -> RetrievalSplit:
+    """CVUSA's `split` with the first DISTRACTORS train tiles appended to its gallery, built without datasets.padded."""
+    own, train = cvusa(root, split), cvusa(root, "train")
+    return RetrievalSplit("padded_test", root, own.queries, own.references + train.references[:DISTRACTORS],
+                          np.arange(own.num_queries))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    base = tmp_path_factory.mktemp("robustness")
+    root, other = write_cvusa(base / "cvusa", n_train=12, n_val=8), write_cvusa(base / "other", 4, 6, seed=1)
+    run.train(compose_train([*TINY, f"dataset.root={root}", f"run_dir={base / 'run'}", "trainer.max_epochs=1"]))
+    return base, root, other, base / "run" / "best.pt"
+
+
+@pytest.mark.slow
+def test_every_cell_is_what_evaluate_py_gives_for_its_condition(trained):
+    base, root, other, ckpt = trained
+    out = base / "table"
+    record = robustness([f"ckpt={ckpt}", f"out={out}", "fovs=[360,90]", "heading_steps=4",
+                         f"distractors={DISTRACTORS}", f"cross=dataset=cvusa dataset.root={other}", "device=cpu"])
+    assert json.loads((out / "robustness.json").read_text()) == json.loads(json.dumps(record))
+    table = (out / "robustness.md").read_text()
+    rows = record["rows"]
+    assert [(r["fov"], r["heading"], r["distractors"], r["cross_dataset"]) for r in rows] == [
+        (f, h, d, False) for d in (0, DISTRACTORS) for f in (360.0, 90.0) for h in ("known", "unknown")] + [
+        (360.0, "known", 0, True)]
+    for k, row in enumerate(rows):
+        data = (["+dataset.name=robustness_padded_test", f"dataset.root={root}"] if row["distractors"]
+                else [f"dataset.root={other}"] if row["cross_dataset"] else [])
+        alone = run.evaluate(compose_evaluate([
+            f"ckpt={ckpt}", "progress=false", "device=cpu", f"run_dir={base / f'eval{k}'}", *data,
+            f"dataset.fov={row['fov']}", f"dataset.random_heading={row['heading'] == 'unknown'}",
+            "dataset.heading_steps=4"]))
+        for key in ("R@1", "R@5", "R@1%", "heading_median_deg", "num_references", "num_queries"):
+            assert row["metrics"].get(key) == pytest.approx(alone.get(key)), (row, key)
+        assert ("heading_median_deg" in alone) == (row["heading"] == "unknown")
+        assert alone["num_references"] == (6 if row["cross_dataset"] else 8 + row["distractors"])
+        cells = f"| {row['fov']:g} | {row['heading']} | " + " | ".join(
+            f"{100 * alone[key]:.2f}" for key in ("R@1", "R@5", "R@1%"))
+        assert cells in table
+    with pytest.raises(ConfigError, match="already exist; choose another out=, or overwrite=true"):
+        robustness([f"ckpt={ckpt}", f"out={out}", "fovs=[360]", "distractors=0", "cross=none"])
+
+
+def test_the_arguments_split_into_the_commands_keys_and_evaluate_overrides():
+    own, dataset, cross = split_args(["ckpt=a.pt", "dataset=cvact", "dataset.root=/d", "heading_steps=6",
+                                      "cross=dataset=vigor dataset.setting=cross_area;dataset=u1652"])
+    assert own == ["ckpt=a.pt", "heading_steps=6"] and dataset == ["dataset=cvact", "dataset.root=/d"]
+    assert cross == [["dataset=vigor", "dataset.setting=cross_area"], ["dataset=u1652"]]
+    assert split_args(["ckpt=a.pt"])[2] == [["dataset=vigor"]] and split_args(["cross=none"])[2] == []
+    with pytest.raises(ConfigError, match="'fovs' is not key=value"):
+        split_args(["fovs"])
+
+
+def test_a_taken_out_folder_or_a_missing_checkpoint_is_refused_before_anything_runs(tmp_path):
+    (tmp_path / "robustness.md").write_text("mine")
+    with pytest.raises(ConfigError, match="robustness.md already exist"):
+        robustness([f"ckpt={tmp_path / 'absent.pt'}", f"out={tmp_path}"])
+    assert (tmp_path / "robustness.md").read_text() == "mine"
+    with pytest.raises(ConfigError, match="is not a file"):
+        robustness([f"ckpt={tmp_path / 'absent.pt'}", f"out={tmp_path / 'new'}"])
+    with pytest.raises(ConfigError, match=r"fovs must be a non-empty list of degrees in \(0, 360\]"):
+        robustness([f"ckpt={tmp_path / 'absent.pt'}", "fovs=[400]"])

@@ -1,0 +1,138 @@
+"""dataset=folder (your own data): positives, radius relevance, tile positions and the area split against brute force;
+VPR file names; every refusal names the file, the line and what to do."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from geoloc.config import ConfigError
+from geoloc.data.geo import haversine_m, offset_to_latlon
+from geoloc.datasets.folder import folder
+
+from helpers.own_data import ORIGIN, grid, positions_csv, write_folder
+
+TILES = grid(4, 3, 50.0)  # 12 tiles, 50 m apart
+QUERIES = TILES[[0, 1, 2, 3, 5, 6, 9, 11]] + np.array(
+    [[3, -2], [10, 4], [-7, 1], [0, 0], [12, -9], [-3, 14], [6, 6], [-11, -2]], np.float64)
+
+
+@pytest.fixture
+def own(tmp_path):
+    return write_folder(tmp_path / "own", TILES, QUERIES, aerial=20, pano=(8, 32))
+
+
+def test_positives_relevance_and_tile_positions_match_brute_force(own):
+    split = folder(str(own), "all", tile_extent_m=40.0, radius_m=40.0)
+    q, t = split.query_latlon, split.reference_latlon
+    d = haversine_m(q[:, None], t[None])
+    assert split.positives.tolist() == d.argmin(1).tolist()
+    relevant = [sorted(r[r >= 0].tolist()) for r in split.relevance.relevant]
+    assert relevant == [sorted(np.flatnonzero(row <= 40.0).tolist()) for row in d]
+    assert any(len(r) > 1 for r in relevant)  # the radius adds neighbours: the test can tell the rules apart
+    assert np.allclose(split.reference_metres_per_px, 2.0) and (split.reference_size_px == 20).all()
+    offset = QUERIES - TILES[split.positives]  # (east, north) from the tile centre, 2 m per pixel
+    assert np.allclose(split.query_tile_px, np.column_stack([10 - offset[:, 1] / 2, 10 + offset[:, 0] / 2]), atol=1e-3)
+    assert np.allclose(split.query_tile_offset_m(), offset, atol=2e-3)
+    same = folder(str(write_folder(own.parent / "xy", TILES, QUERIES, aerial=20, pano=(8, 32), system="xy")),
+                  "all", metres_per_px=2.0, radius_m=40.0)
+    assert same.positives.tolist() == split.positives.tolist() and np.allclose(same.query_tile_px, split.query_tile_px, atol=1e-3)
+
+
+@pytest.mark.parametrize("axis", ["east", "north"])
+def test_the_split_is_by_area_and_deterministic(own, axis):
+    whole = folder(str(own), "all", tile_extent_m=40.0)
+    train = folder(str(own), "train", tile_extent_m=40.0, split_axis=axis, test_fraction=0.4)
+    test = folder(str(own), "test", tile_extent_m=40.0, split_axis=axis, test_fraction=0.4)
+    assert set(train.references).isdisjoint(test.references) and set(train.queries).isdisjoint(test.queries)
+    assert sorted(train.references + test.references) == sorted(whole.references)
+    assert sorted(train.queries + test.queries) == sorted(whole.queries)
+    k = 0 if axis == "east" else 1
+    coordinate = {p: TILES[i, k] for i, p in enumerate(whole.references)}
+    line = np.quantile(TILES[:, k], 0.6)
+    assert all(coordinate[p] >= line for p in test.references) and all(coordinate[p] < line for p in train.references)
+    nearest = {whole.queries[i]: whole.references[p] for i, p in enumerate(whole.positives)}
+    for part in (train, test):  # a query goes where its nearest tile is, and that tile is its positive
+        assert all(nearest[query] == part.references[p] for query, p in zip(part.queries, part.positives))
+    assert f"{axis} >= " in test.name and folder(str(own), "test", tile_extent_m=40.0, split_axis=axis,
+                                                  test_fraction=0.4).queries == test.queries
+
+
+def vpr_name(east, north, zone=32, letter="U", k=0):
+    lat, lon = offset_to_latlon(ORIGIN, east, north)
+    return f"@{500000 + east:.2f}@{5400000 + north:.2f}@{zone}@{letter}@{lat:.5f}@{lon:.5f}@pano{k}@@@@@@@@.jpg"
+
+
+def test_vpr_file_names_need_no_csv_and_one_utm_zone(own):
+    for side, positions in (("tiles", TILES), ("queries", QUERIES)):
+        (own / f"{side}.csv").unlink()
+        for i, old in enumerate(sorted((own / side).iterdir())):
+            old.rename(own / side / vpr_name(*positions[i], k=i))
+    split = folder(str(own), "all", tile_extent_m=40.0)
+    assert split.query_xy is not None and split.query_latlon is None
+    k = [int(p.name.split("@")[7][4:]) for p in split.queries]  # pano<k>: the query's row in QUERIES
+    assert np.allclose(split.query_xy - split.reference_xy[split.positives], QUERIES[k] - TILES[[0, 1, 2, 3, 5, 6, 9, 11]][k])
+    odd = next((own / "tiles").iterdir())
+    odd.rename(own / "tiles" / vpr_name(0, 0, zone=33, k=99))
+    with pytest.raises(ValueError, match=r"UTM zone 33U differs from 32U .*give positions in one zone, or as lat,lon"):
+        folder(str(own), "all", tile_extent_m=40.0)
+    odd = own / "tiles" / vpr_name(0, 0, zone=33, k=99)
+    odd.rename(own / "tiles" / "plain.jpg")
+    with pytest.raises(ValueError, match=r"plain.jpg' is not a VPR name .*Write .*tiles.csv"):
+        folder(str(own), "all", tile_extent_m=40.0)
+
+
+def write_table(own, side, text):
+    (own / f"{side}.csv").write_text(text)
+
+
+ROWS = positions_csv([f"t{i:03d}.png" for i in range(12)], TILES).splitlines(keepends=True)
+
+
+@pytest.mark.parametrize("rows, message", [
+    (ROWS[:3] + ["t002.png,48.8,north\n"] + ROWS[4:], r"tiles.csv:4: lat,lon must be numbers, got '48.8','north'"),
+    (ROWS[:5] + ["t004.png,48.8\n"] + ROWS[6:], r"tiles.csv:6: 2 fields, the header has 3"),
+    (["image,lat,lon,altitude\n"] + ROWS[1:], r"tiles.csv:1: header .*unknown column 'altitude'. The header is one of"),
+    (["image,lat,lon,east_m,north_m\n"] + ROWS[1:], r"both lat/lon and east_m/north_m columns"),
+    (ROWS[:2] + ["t001.png,5400123.0,500321.0\n"] + ROWS[3:], r"tiles.csv:3: lat,lon = 5400123.0,500321.0 is not a "
+                                                             r"position in degrees .*header image,east_m,north_m"),
+    (ROWS[:2] + ["t999.png,48.8,2.3\n"] + ROWS[3:], r"tiles.csv:3: image t999.png not found in .*fix the name or "
+                                                    r"remove the row"),
+    (ROWS + [ROWS[2]], r"tiles.csv:14: image t001.png is listed again \(first on line 3\)"),
+    (ROWS[:-1], r"t011.png is in .*tiles but not in .*tiles.csv \(1 such images\): add a row"),
+    (["image,east_m,north_m,utm_zone\n", "t000.png,1,2,32T\n", "t001.png,5,2,33T\n"],
+     r"tiles.csv:3: UTM zone 33T differs from 32T \(.*tiles.csv:2\)"),
+])
+def test_a_bad_table_is_refused_naming_the_file_and_line(own, rows, message):
+    write_table(own, "tiles", "".join(rows))
+    with pytest.raises((ValueError, FileNotFoundError), match=message):
+        folder(str(own), "all", tile_extent_m=40.0)
+
+
+def test_mixed_systems_missing_scale_and_a_query_outside_every_tile_are_refused(own):
+    names = [f"q{i:03d}.png" for i in range(len(QUERIES))]
+    write_table(own, "queries", positions_csv(names, QUERIES, "xy"))
+    with pytest.raises(ValueError, match=r"queries.csv gives east_m,north_m \(metres\) and .*tiles.csv gives lat,lon"):
+        folder(str(own), "all", tile_extent_m=40.0)
+    write_table(own, "queries", positions_csv(names, QUERIES))
+    with pytest.raises(ConfigError, match="needs the tiles' ground scale, one of dataset.tile_extent_m"):
+        folder(str(own), "all")
+    with pytest.raises(ConfigError, match="needs the tiles' ground scale"):
+        folder(str(own), "all", tile_extent_m=40.0, metres_per_px=2.0)
+    far = QUERIES.copy()
+    far[4] = TILES[5] + [22.0, 0.0]  # 22 m east of a 30 m wide tile's centre; the next tile is 28 m away
+    write_table(own, "queries", positions_csv(names, far))
+    with pytest.raises(ValueError, match=r"queries.csv:6: query .*q004.png lies 22.0 m from its nearest tile's "
+                                         r"centre .*t005.png\), outside that tile \(30.0 x 30.0 m\)"):
+        folder(str(own), "all", tile_extent_m=30.0)
+    assert folder(str(own), "all", tile_extent_m=45.0).num_queries == len(QUERIES)
+
+
+def test_the_reader_is_registered_with_its_keys(own):
+    from helpers.crossview_runs import split_of
+
+    split = split_of({"name": "folder", "root": str(own), "tile_extent_m": 40.0, "check_files": "exists"}, "test")
+    assert split.name.startswith("folder/test (east >= ") and split.relevance.kind == "radius"
+    with pytest.raises(ConfigError, match=re.escape("dataset.root=DIR holding queries/ and tiles/")):
+        split_of({"name": "folder", "tile_extent_m": 40.0}, "test")

@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 import geoloc.losses  # noqa: F401  (declares the loss kind and registers its built-ins)
 import geoloc.models.optim  # noqa: F401  (the optimizer kind)
 from geoloc import registry
+from geoloc.config import ConfigError
 from geoloc.data import samplers  # noqa: F401  (the sampler kind)
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
@@ -29,7 +30,7 @@ from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 # What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
 # the batch as the data module gives it and each branch's BranchFeatures (models/crossview.py). They are this
 # rank's, where the descriptors are gathered over ranks.
-LOSS_EXTRAS = ("batch", "query_features", "reference_features")
+LOSS_EXTRAS = ("batch", "query_features", "reference_features", "query_views")
 
 
 class CrossViewTask(Task):
@@ -98,6 +99,13 @@ class CrossViewTask(Task):
         else:
             query, reference = self.model(batch["query"], batch["reference"])
         query, reference = query.float(), reference.float()
+        if "query_views" in batch:  # extra views of each query (geoloc/tasks/crossview/view_pairs.py): B×V×D
+            if "query_views" not in self.loss_extras:
+                raise ConfigError("the training batches carry extra query views (views.name is not 'single'), but "
+                                  f"loss {type(self.loss).__name__} does not take them (no `query_views` argument); "
+                                  "use loss=any_view_infonce or views=single")
+            views = batch["query_views"]
+            extras["query_views"] = self.model.query(views.flatten(0, 1)).float().unflatten(0, views.shape[:2])
         # the loss sees the global batch; gradients flow back to every rank's slice
         query_all = dist.all_gather_with_grad(query)
         reference_all = dist.all_gather_with_grad(reference)

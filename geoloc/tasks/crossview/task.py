@@ -69,6 +69,10 @@ class CrossViewTask(Task):
         return [opt], [sched] if sched is not None else []
 
     def train_dataloader(self, dataset, batch_size, engine):
+        if getattr(dataset, "views", None) is not None and "query_views" not in self.loss_extras:
+            raise ConfigError("the training pairs carry extra query views (views.name is not 'single'), but loss "
+                              f"{type(self.loss).__name__} does not take them (no `query_views` argument); use "
+                              "loss=any_view_infonce or views=single")
         self.query_views["train"] = dataset.split.query_view
         if self.sampler_section.get("name") == "shuffle":  # the engine's own seeded shuffle
             return engine.loader(dataset, batch_size, train=True)
@@ -100,10 +104,6 @@ class CrossViewTask(Task):
             query, reference = self.model(batch["query"], batch["reference"])
         query, reference = query.float(), reference.float()
         if "query_views" in batch:  # extra views of each query (geoloc/tasks/crossview/view_pairs.py): B×V×D
-            if "query_views" not in self.loss_extras:
-                raise ConfigError("the training batches carry extra query views (views.name is not 'single'), but "
-                                  f"loss {type(self.loss).__name__} does not take them (no `query_views` argument); "
-                                  "use loss=any_view_infonce or views=single")
             views = batch["query_views"]
             extras["query_views"] = self.model.query(views.flatten(0, 1)).float().unflatten(0, views.shape[:2])
         # the loss sees the global batch; gradients flow back to every rank's slice

@@ -9,7 +9,8 @@ from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview.views import crop_view, view_canvas
 
-from helpers.crossview_runs import pairs_of, task_of, train_cfg
+from conftest import tiny_task
+from helpers.crossview_runs import pairs_of
 
 
 class Draws:
@@ -75,10 +76,11 @@ def test_training_items_carry_the_extra_views_and_evaluation_items_do_not(tiny_c
     assert "query_views" not in pairs_of(section, "train", train=True)[(0, 0)]  # views=single: as before
 
 
-def test_a_loss_that_cannot_take_the_extra_views_is_refused_at_the_first_step(tiny_cvusa, tmp_path):
-    task = task_of(train_cfg(tiny_cvusa, tmp_path, "views=any_view"))
-    b = 4
-    batch = {"query": torch.randn(b, 3, 32, 32), "reference": torch.randn(b, 3, 32, 32), "label": torch.arange(b),
-             "index": torch.arange(b), "query_views": torch.randn(b, 2, 3, 32, 32)}
+def test_a_loss_that_cannot_take_the_extra_views_is_refused_before_training(tiny_cvusa):
+    from geoloc.tasks.crossview.data_config import parse_dataset
+    from geoloc.tasks.crossview.datasets import build
+
+    data, reader = parse_dataset({"name": "cvusa", "root": str(tiny_cvusa), "aerial_size": 32, "pano_size": [16, 64]})
+    pairs = build(data, reader, "train", train=True, views={"name": "any_view"})
     with pytest.raises(ConfigError, match="query_views"):
-        task.training_step(batch, engine=None)
+        tiny_task().train_dataloader(pairs, 4, engine=None)  # gms_triplet: no query_views argument

@@ -126,6 +126,27 @@ class SimilarityBatches(PlaceBatches):
         return self.neighbours if self.similar is None else self.similar
 
 
+class OnePerPlaceBatches(PlaceBatches):
+    """Each epoch, one pair of every place drawn at random, the places in a seeded permutation cut into batches
+    (no place twice, as each appears once): an epoch is one pass over the places, not over the pairs, and a
+    place's views take turns from epoch to epoch (University-1652's baseline draws one drone view per building
+    each time it sees the building). The incomplete last global batch is dropped. Deterministic in (seed, epoch)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        order = np.argsort(self.place, kind="stable")
+        self.members = np.split(order, np.cumsum(np.bincount(self.place))[:-1])  # place -> its pair indices
+
+    def batches(self) -> list[np.ndarray]:
+        if self._packed is None or self._packed[0] != self.epoch:
+            rng = np.random.default_rng([self.seed, self.epoch])
+            drawn = np.array([m[rng.integers(len(m))] for m in self.members])
+            drawn = drawn[rng.permutation(len(drawn))]
+            full = len(drawn) // self.global_size * self.global_size
+            self._packed = (self.epoch, None, list(drawn[:full].reshape(-1, self.global_size)))
+        return self._packed[2]
+
+
 @register("sampler", "shuffle")
 def shuffle(labels, batch_size: int, seed: int, rank: int, world_size: int, neighbours=None) -> ShuffleBatches:
     """The default: the engine's seeded permutation per epoch (pairs of one place may share a batch)."""
@@ -137,6 +158,13 @@ def shuffle(labels, batch_size: int, seed: int, rank: int, world_size: int, neig
 def no_duplicate(labels, batch_size: int, seed: int, rank: int, world_size: int, neighbours=None) -> PlaceBatches:
     """A seeded permutation per epoch packed into batches without a repeated place."""
     return PlaceBatches("no_duplicate", labels, batch_size, seed, rank, world_size)
+
+
+@register("sampler", "one_per_place")
+def one_per_place(labels, batch_size: int, seed: int, rank: int, world_size: int,
+                  neighbours=None) -> OnePerPlaceBatches:
+    """One random pair of each place per epoch, the places shuffled into batches."""
+    return OnePerPlaceBatches("one_per_place", labels, batch_size, seed, rank, world_size)
 
 
 @register("sampler", "gps_neighbours")

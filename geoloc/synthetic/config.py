@@ -138,10 +138,16 @@ PRESETS = {
                        world_margin=1.5, cities=2, grid=3, train=4, val=3),
     "vigor_small": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
                         world_margin=2.0, cities=4, grid=8, train=64, val=32),
+    # the CPU recipes' larger worlds (conf/experiment/vigor_cpu.yaml, u1652_cpu.yaml): the small presets' image
+    # sizes and test sets, six / eight times the training places (the small ones over-fit within a few epochs)
+    "vigor_medium": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
+                         world_margin=2.0, cities=4, grid=8, train=384, val=32),
     "u1652_tiny": dict(aerial_size=64, view_size=48, cell_m=1.0, tile_m=96.0, world_margin=2.0, fov_deg=60.0,
                        drone_views=3, extra_gallery=1, train=3, val=2),
     "u1652_small": dict(aerial_size=256, view_size=192, cell_m=0.5, tile_m=120.0, world_margin=2.0, fov_deg=60.0,
                         drone_views=8, extra_gallery=16, train=48, val=48),
+    "u1652_medium": dict(aerial_size=256, view_size=192, cell_m=0.5, tile_m=120.0, world_margin=2.0, fov_deg=60.0,
+                         drone_views=8, extra_gallery=16, train=384, val=48),
     # the real datasets' sizes and counts (vigor and u1652: image sizes; the real counts would be days of CPU)
     "cvusa": dict(train=35532, val=8884),
     "cvact": dict(aerial_size=1200, cell_m=0.2, train=35532, val=8884),

@@ -5,7 +5,7 @@
 
 Every check that can fail on the config alone runs here, before any data is read, generated or decoded: the
 dataset's shared keys (CrossViewDataConfig) and its reader's own keys, the model section, the trainer section and
-the name and arguments of every registered component (backbone, head, loss, optimizer, sampler).
+the name and arguments of every registered component (backbone, head, loss, optimizer, sampler, query views).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 
 from omegaconf import DictConfig, OmegaConf
 
+import geoloc.tasks.crossview.view_pairs  # noqa: F401  (declares the query_views kind, registers its built-ins)
 from geoloc import registry
 from geoloc.config import ConfigError, EvaluateKeys, TrainKeys, checked, defaults_of, to_yaml, top_level
 from geoloc.engine import TrainerConfig
@@ -22,7 +23,7 @@ from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_datase
 from geoloc.tasks.crossview.gallery import GalleryConfig
 
 #: the registered kinds a cross-view network and its training are built from (registry.section: their sections)
-COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler")
+COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler", "query_views")
 #: what a resume may change besides the engine's keys (geoloc/launch/resume.py): the processes that render the
 #: synthetic set, which write the same files either way
 RESUME_MAY_CHANGE = ("dataset.workers",)
@@ -57,6 +58,7 @@ class Components:
     loss: dict
     optim: dict
     sampler: dict = field(default_factory=lambda: {"name": "shuffle"})
+    views: dict = field(default_factory=lambda: {"name": "single"})  # the query views of a training pair
 
     def section(self, kind: str) -> dict:
         return getattr(self, registry.section(kind))
@@ -107,6 +109,8 @@ def parse_components(cfg: DictConfig) -> Components:
     sections = {registry.section(kind): _plain(cfg.get(registry.section(kind))) for kind in COMPONENTS}
     if not sections["sampler"]:  # checkpoints written before samplers were a group
         sections["sampler"] = {"name": "shuffle"}
+    if not sections["views"]:  # a run that names no query views (the default, and checkpoints before the kind)
+        sections["views"] = {"name": "single"}
     for kind in COMPONENTS:
         section = registry.section(kind)
         if not sections[section]:

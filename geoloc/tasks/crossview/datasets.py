@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 from torch.utils.data import Dataset
 
 from geoloc import registry
@@ -17,7 +18,8 @@ from geoloc.data.validate import check_files
 from geoloc.engine.sampling import item_rng, split_key
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
-from geoloc.tasks.crossview.transforms import align, align_query, align_reference, load_view, to_tensor
+import geoloc.tasks.crossview.view_pairs  # noqa: F401  (the query_views kind that build() builds)
+from geoloc.tasks.crossview.transforms import align, align_query, align_reference, augment, load_view, to_tensor
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
@@ -65,15 +67,20 @@ class CrossViewPairs(Dataset):
 
     `heading_search` (evaluation with dataset.random_heading): query i is seen at heading eval_heading(i) with
     dataset.fov, and item["query"] is its K×3×H×W candidate inputs (heading 360·k/K each, geoloc/tasks/crossview/views.py),
-    item["heading"] the true heading in degrees."""
+    item["heading"] the true heading in degrees.
+
+    `views` (training only; geoloc/tasks/crossview/view_pairs.py): a query_views object that makes the query's
+    canvas from the augmented panorama in place of dataset.fov / random_heading, and extra views of it, given as
+    item["query_views"]: V×3×Hq×Wq. None: one query, as the dataset config says."""
 
     def __init__(self, split: RetrievalSplit, cfg: CrossViewDataConfig, train: bool, augment_seed: int = 0,
-                 heading_search: bool = False):
+                 heading_search: bool = False, views=None):
         if split.aerial_queries:
             raise ValueError(f"{split.name}: pairs need ground-side queries; this split's queries are aerial images")
         self.split, self.cfg, self.train = split, cfg, train
         self.heading_search = heading_search
         self.augment_seed = augment_seed
+        self.views = views if train else None
         self.labels = split.labels()
         self._neighbours = None
 
@@ -105,9 +112,21 @@ class CrossViewPairs(Dataset):
             return {"query": candidates, "reference": to_tensor(align_reference(aerial, self.cfg)), "index": index,
                     "label": label, "heading": heading}
         rng = item_rng(self.augment_seed, key) if self.train else None
+        if self.views is not None:
+            return self._with_views(street, aerial, rng, index, label)
         query, reference = align(street, aerial, self.cfg, rng, self.split.query_view)
         return {"query": to_tensor(query, rng, self.cfg.color_jitter),
                 "reference": to_tensor(reference, rng, self.cfg.color_jitter), "index": index, "label": label}
+
+
+    def _with_views(self, street, aerial, rng, index: int, label: int) -> dict:
+        street, aerial = augment(street, aerial, self.cfg, rng)
+        main, extras = self.views(street, rng)
+        view, jitter = self.split.query_view, self.cfg.color_jitter
+        return {"query": to_tensor(align_query(main, self.cfg, view), rng, jitter),
+                "reference": to_tensor(align_reference(aerial, self.cfg), rng, jitter), "index": index,
+                "label": label,
+                "query_views": torch.stack([to_tensor(align_query(v, self.cfg, view), rng, jitter) for v in extras])}
 
 
 class ViewImages(Dataset):
@@ -166,9 +185,16 @@ def known_heading(data: EvalData) -> EvalData:
     return data
 
 
-def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
-    """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too."""
-    return CrossViewPairs(read_split(cfg, reader, split), cfg, train=train, augment_seed=augment_seed)
+def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0,
+          views: dict | None = None) -> CrossViewPairs:
+    """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too.
+    `views`: the query_views section (view_pairs.py; None or `single`: one query view)."""
+    data = read_split(cfg, reader, split)
+    pairing = None if views is None else registry.build("query_views", views)
+    if pairing is not None and data.query_view not in ("panorama", "sphere"):
+        raise ConfigError(f"views.name={views.get('name')!r} places panorama windows at bearings; dataset "
+                          f"{cfg.name!r} has {data.query_view!r} queries: use views=single")
+    return CrossViewPairs(data, cfg, train=train, augment_seed=augment_seed, views=pairing)
 
 
 def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str) -> EvalData:

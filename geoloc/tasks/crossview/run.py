@@ -41,7 +41,8 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
     source = None
     if run.job.init_from:
         source = ckpt_io.init_from(task, run.job.init_from, fresh=INIT_FROM_FRESH)
-    train_set = build(run.data, run.reader, "train", train=True, augment_seed=run.trainer.seed)
+    train_set = build(run.data, run.reader, "train", train=True, augment_seed=run.trainer.seed,
+                      views=run.components.views)
     val_set = build_eval(run.data, run.reader, run.data.val_split)
     task.validate_on(val_set.split)
     trainer = Trainer(run.trainer, run_dir, run.yaml)

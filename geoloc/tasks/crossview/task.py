@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 import geoloc.losses  # noqa: F401  (declares the loss kind and registers its built-ins)
 import geoloc.models.optim  # noqa: F401  (the optimizer kind)
 from geoloc import registry
+from geoloc.config import ConfigError
 from geoloc.data import samplers  # noqa: F401  (the sampler kind)
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
@@ -29,7 +30,7 @@ from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 # What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
 # the batch as the data module gives it and each branch's BranchFeatures (models/crossview.py). They are this
 # rank's, where the descriptors are gathered over ranks.
-LOSS_EXTRAS = ("batch", "query_features", "reference_features")
+LOSS_EXTRAS = ("batch", "query_features", "reference_features", "query_views")
 
 
 class CrossViewTask(Task):
@@ -68,6 +69,10 @@ class CrossViewTask(Task):
         return [opt], [sched] if sched is not None else []
 
     def train_dataloader(self, dataset, batch_size, engine):
+        if getattr(dataset, "views", None) is not None and "query_views" not in self.loss_extras:
+            raise ConfigError("the training pairs carry extra query views (views.name is not 'single'), but loss "
+                              f"{type(self.loss).__name__} does not take them (no `query_views` argument); use "
+                              "loss=any_view_infonce or views=single")
         self.query_views["train"] = dataset.split.query_view
         if self.sampler_section.get("name") == "shuffle":  # the engine's own seeded shuffle
             return engine.loader(dataset, batch_size, train=True)
@@ -98,6 +103,9 @@ class CrossViewTask(Task):
         else:
             query, reference = self.model(batch["query"], batch["reference"])
         query, reference = query.float(), reference.float()
+        if "query_views" in batch:  # extra views of each query (geoloc/tasks/crossview/view_pairs.py): B×V×D
+            views = batch["query_views"]
+            extras["query_views"] = self.model.query(views.flatten(0, 1)).float().unflatten(0, views.shape[:2])
         # the loss sees the global batch; gradients flow back to every rank's slice
         query_all = dist.all_gather_with_grad(query)
         reference_all = dist.all_gather_with_grad(reference)

@@ -45,16 +45,24 @@ def horizon_band(sphere: np.ndarray) -> np.ndarray:
 def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
           rng: np.random.Generator | None, view: str = "panorama") -> tuple[np.ndarray, np.ndarray]:
     """Apply the alignment switch (and the train-time augmentation) to one decoded pair."""
+    street, aerial = augment(street, aerial, cfg, rng)
+    if cfg.fov < 360.0:  # the camera's window on the north-aligned panorama; at fov 360 no random number is drawn
+        heading = float(rng.uniform(0.0, 360.0)) if rng is not None and cfg.random_heading else 0.0
+        street = north_window(street, cfg.fov, heading)
+    return align_query(street, cfg, view), align_reference(aerial, cfg)
+
+
+def augment(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
+            rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
+    """The train-time geometric augmentation of one decoded pair (none when rng is None): the joint flip /
+    quarter-turn, then the rotation of the query alone."""
     if rng is not None and cfg.joint_flip_rotate:
         street, aerial = flip_rotate(street, aerial, int(rng.integers(4)), bool(rng.integers(2)))
     if rng is not None and cfg.rotation_deg > 0:
         # rotating the aerial-like image by θ is a circular shift of the panorama by θ/360 of its width
         shift = int(round(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg) / 360.0 * street.shape[1]))
         street = np.roll(street, shift, axis=1)
-    if cfg.fov < 360.0:  # the camera's window on the north-aligned panorama; at fov 360 no random number is drawn
-        heading = float(rng.uniform(0.0, 360.0)) if rng is not None and cfg.random_heading else 0.0
-        street = north_window(street, cfg.fov, heading)
-    return align_query(street, cfg, view), align_reference(aerial, cfg)
+    return street, aerial
 
 
 def align_query(street: np.ndarray, cfg: CrossViewDataConfig, view: str = "panorama",

@@ -117,7 +117,8 @@ def run_case(args):
     print(json.dumps(res))
 
 
-SWEPT = {"ivfpq": "nprobe", "pq_refine": "k_factor", "ivfpq_refine": "nprobe", "hnsw": "ef_search"}
+SWEPT = {"ivfpq": "nprobe", "pq_refine": "k_factor", "ivfpq_refine": "nprobe", "pq_sq8": "k_factor",
+         "hnsw": "ef_search"}
 IVF_K_FACTOR = 16  # ivfpq_refine sweeps nprobe at this shortlist multiple
 
 
@@ -129,7 +130,8 @@ def run_approximate(args, kind, query, ref):
 
     faiss.omp_set_num_threads(args.threads)
     index = GalleryIndex(ref.shape[1], backend="faiss", kind=kind, nlist=args.nlist, m=args.m, nbits=args.nbits,
-                         k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m, ef_construction=args.ef_construction)
+                         coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m,
+                         ef_construction=args.ef_construction)
     _, build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)))
     knob = SWEPT[kind]
     sweep = []
@@ -166,7 +168,7 @@ def fmt_recall(r):
 def describe(kind, args):
     return {"ivfpq": f"nlist {args.nlist} m {args.m}x{args.nbits}", "pq_refine": f"m {args.m}x4",
             "ivfpq_refine": f"nlist {args.nlist} m {args.m}x4 k_factor {IVF_K_FACTOR}",
-            "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}"}[kind]
+            "pq_sq8": f"m {args.coarse_m}x4 + SQ8", "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}"}[kind]
 
 
 def main(args, argv):
@@ -227,6 +229,7 @@ if __name__ == "__main__":
     parser.add_argument("--train-points", type=int, default=65536, help="IVF / PQ training sample (>= 39 nlist)")
     parser.add_argument("--nlist", type=int, default=1024)
     parser.add_argument("--m", type=int, default=64)
+    parser.add_argument("--coarse-m", type=int, default=32, help="pq_sq8: 4-bit sub-quantisers of the coarse code")
     parser.add_argument("--nbits", type=int, default=8, help="ivfpq bits per sub-code (the refine kinds use 4)")
     parser.add_argument("--nprobe", type=int, nargs="+", default=[16, 64, 256, 512], help="IVF lists visited per query")
     parser.add_argument("--k-factor", type=int, nargs="+", default=[4, 16], help="pq_refine shortlist multiple")

@@ -32,11 +32,12 @@ import warnings
 from dataclasses import dataclass, fields
 
 import torch
-from torch.utils.data import Subset
+from torch.utils.data import Dataset
 
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.engine import distributed as dist
+from geoloc.engine.sampling import split_key
 from geoloc.eval.descriptors import check_descriptors, descriptor_spread, require_finite
 from geoloc.eval.gallery import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss, sub_quantisers,
                                  training_points, training_rows)
@@ -153,14 +154,34 @@ def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", 
     """{side: descriptors} of the split's queries and / or references, each image through its view's branch;
     `rows` (ascending): only those references (one-to-one splits: those pairs), in that order."""
     def subset(dataset):
-        return dataset if rows is None else Subset(dataset, list(rows))
+        return dataset if rows is None else Rows(dataset, list(rows))
 
+    if data.pairs is not None and rows is not None:
+        labels = data.split.labels()
+        if any(int(labels[i]) != i for i in rows):  # pair i holds reference labels[i]
+            raise ValueError("encoding some references of a split through its pairs needs pair i to hold "
+                             "reference i (a one-to-one split)")
     if data.pairs is not None:
         return encode(task, engine, engine.loader(subset(data.pairs), batch_size, train=False), keys=sides)
     encoders = dict(zip(("query", "reference"), task.model.encoders(data.split.aerial_queries)))
     images = {"query": data.queries, "reference": subset(data.references)}
     return {side: encode_images(task, engine, engine.loader(images[side], batch_size, train=False), encoders[side])
             for side in sides}
+
+
+class Rows(Dataset):
+    """The items `rows` of `dataset`, keyed as the engine's sampler keys items (an index or (index, epoch)); each
+    item keeps its own "index" in `dataset`, by which encode() orders the descriptors."""
+
+    def __init__(self, dataset, rows: list[int]):
+        self.dataset, self.rows = dataset, rows
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, key) -> dict:
+        index, epoch = split_key(key)
+        return self.dataset[(self.rows[index], epoch)]
 
 
 def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:

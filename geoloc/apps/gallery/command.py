@@ -27,7 +27,7 @@ class MergeKeys:
 
 def main(args: list[str]) -> int:
     from geoloc.cli import parse_keys
-    from geoloc.tasks.crossview.gallery_shards import merge_shards
+    from geoloc.tasks.crossview import merge_shards
 
     if not args or args[0] != "merge":
         raise ConfigError(f"unknown gallery action {args[0] if args else '(none)'!r}: geoloc gallery merge ...")

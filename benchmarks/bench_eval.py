@@ -6,7 +6,7 @@ Two settings, each case in its own process so that its peak memory is its own:
 2. A country-scale gallery: 1,000,000 references. 1M x 4,096 float32 is 16 GB, more than a shared 24 GB machine
    should hold, so the default is D = 512 (2 GB); pass --large-dim 4096 on a machine that has the memory.
    Exact search (torch, chunked) side by side with each approximate GalleryIndex kind in --kinds (ivfpq,
-   pq_refine, ivfpq_refine, hnsw), each over a sweep of its search knob (--nprobe, --k-factor, --ef-search):
+   pq_refine, ivfpq_refine, pq_sq8, hnsw), each over a sweep of its search knob (--nprobe, --k-factor, --ef-search):
    recall kept (approximate / exact R@1 and R@10), ms per query, index size (FAISS serialize_index bytes), the
    process's peak memory rise and the build time. Only --large-queries queries are timed (default 1,000); the
    gallery is full size. The load average (/proc/loadavg) is printed with each case: the CPU may be shared.

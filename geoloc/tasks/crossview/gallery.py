@@ -93,8 +93,9 @@ class GalleryConfig(IndexParams):
         if not 0 <= self.shard_index < self.num_shards:
             raise ValueError(f"gallery.shard_index={self.shard_index} gallery.num_shards={self.num_shards}: the "
                              f"shard index must be in 0..num_shards-1 (num_shards >= 1)")
-        if (self.train_only or self.num_shards > 1) and not self.save:
-            what = "gallery.train_only=true" if self.train_only else "gallery.num_shards"
+        if (self.train_only or self.num_shards > 1 or self.codebook) and not self.save:
+            what = ("gallery.train_only=true" if self.train_only else "gallery.num_shards" if self.num_shards > 1
+                    else "gallery.codebook")
             raise ValueError(f"{what} writes a folder: give gallery.save=DIR")
         if self.train_only and (self.num_shards > 1 or self.codebook):
             raise ValueError("gallery.train_only=true trains the codebook every shard is filled from: give it "

@@ -6,10 +6,18 @@ Two settings, each case in its own process so that its peak memory is its own:
 2. A country-scale gallery: 1,000,000 references. 1M x 4,096 float32 is 16 GB, more than a shared 24 GB machine
    should hold, so the default is D = 512 (2 GB); pass --large-dim 4096 on a machine that has the memory.
    Exact search (torch, chunked) side by side with each approximate GalleryIndex kind in --kinds (ivfpq,
-   pq_refine, ivfpq_refine, hnsw), each over a sweep of its search knob (--nprobe, --k-factor, --ef-search):
+   pq_refine, ivfpq_refine, pq_sq8, hnsw), each over a sweep of its search knob (--nprobe, --k-factor, --ef-search):
    recall kept (approximate / exact R@1 and R@10), ms per query, index size (FAISS serialize_index bytes), the
    process's peak memory rise and the build time. Only --large-queries queries are timed (default 1,000); the
    gallery is full size. The load average (/proc/loadavg) is printed with each case: the CPU may be shared.
+
+3. The largest gallery (--huge-n, e.g. 10,000,000 x 512: 19 GiB of float32, more than the process may hold): the
+   compact kind (pq_sq8) built from a stream of blocks made from a seed, never the whole float data: the codebook
+   trains on the first --train-points references, then block after block is made, added, and scored exactly against
+   the queries (a running top-1, for the exact R@1), then dropped. The index is saved with GalleryIndex.save (FAISS
+   write_index, straight to the file) and loaded memory-mapped (GalleryIndex.load), then timed one query at a time.
+   Printed: build time, peak RSS, index file bytes, the RSS after the mapped load and after the searches, ms/query,
+   and R@1 against the exact R@1.
 
 Data: synthetic unit descriptors of intrinsic dimension --rank (64) in D dimensions, plus a little isotropic noise;
 query i is reference i's latent code plus --noise (--large-noise) Gaussian noise, chosen so that exact recall is
@@ -20,6 +28,7 @@ high but not 100%. Peak memory is the rise of the process's peak RSS (VmHWM) ove
     OMP_NUM_THREADS=1 python benchmarks/bench_eval.py --n 0 --kinds pq_refine ivfpq_refine  # ~5 min
     python benchmarks/bench_eval.py --large-n 0                         # CVUSA size only
     python benchmarks/bench_eval.py --large-n 200000 --large-queries 500  # quicker large setting
+    OMP_NUM_THREADS=1 python benchmarks/bench_eval.py --n 0 --large-n 0 --huge-n 10000000  # the largest gallery
 """
 import argparse
 import json
@@ -49,6 +58,81 @@ def make_data(n_ref, n_query, dim, noise, seed, rank=64, iso=0.1):
     query = (z[:n_query] + noise * rng.standard_normal((n_query, rank), dtype=np.float32)) @ w
     query /= np.linalg.norm(query, axis=1, keepdims=True)
     return query, ref
+
+
+def latent_map(dim, seed, rank=64):
+    rng = np.random.default_rng(seed)
+    return rng.standard_normal((rank, dim), dtype=np.float32) / np.float32(np.sqrt(rank))
+
+
+def stream_block(w, start, stop, seed, iso=0.1):
+    """References start..stop of a stream of make_data's kind, made from (seed, block start) alone: any block can
+    be made again without the others. Returns (latent codes, unit references)."""
+    rng = np.random.default_rng([seed, start])
+    z = rng.standard_normal((stop - start, w.shape[0]), dtype=np.float32)
+    ref = z @ w
+    scale = np.float32(iso / np.sqrt(w.shape[1])) * np.linalg.norm(ref, axis=1, keepdims=True)
+    ref += scale * rng.standard_normal(ref.shape, dtype=np.float32)
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    return z, ref
+
+
+def run_huge(args):
+    """The largest gallery: pq_sq8 built from a stream of blocks, saved, loaded memory-mapped, searched."""
+    import tempfile
+
+    import faiss
+    import torch
+
+    from geoloc.eval import GalleryIndex
+
+    torch.set_num_threads(args.threads)
+    faiss.omp_set_num_threads(args.threads)
+    n, dim, block, nq = args.huge_n, args.large_dim, 100_000, args.huge_queries
+    w = latent_map(dim, args.seed, args.rank)
+    rng = np.random.default_rng([args.seed, 2**40])  # the queries: a stream of their own
+    z0, _ = stream_block(w, 0, min(block, n), args.seed)
+    query = (z0[:nq] + args.large_noise * rng.standard_normal((nq, w.shape[0]), dtype=np.float32)) @ w
+    query /= np.linalg.norm(query, axis=1, keepdims=True)
+    index = GalleryIndex(dim, backend="faiss", kind="pq_sq8", coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR)
+    base = _status("VmRSS")
+    exact_peak = reset_peak()
+    start = time.perf_counter()
+    index.train(stream_block(w, 0, min(args.train_points, n), args.seed)[1])
+    best = np.full(nq, -np.inf, np.float32)
+    best_row = np.zeros(nq, np.int64)
+    exact_s = 0.0
+    for s in range(0, n, block):
+        _, ref = stream_block(w, s, min(s + block, n), args.seed)
+        index.add(ref)
+        t = time.perf_counter()
+        scores = query @ ref.T  # the exact top-1, block by block (the lower row wins a tie)
+        top = scores.argmax(1)
+        better = scores[np.arange(nq), top] > best
+        best[better], best_row[better] = scores[np.arange(nq), top][better], s + top[better]
+        exact_s += time.perf_counter() - t
+    build_s = time.perf_counter() - start - exact_s
+    res = {"case": "huge", "n_ref": n, "dim": dim, "n_query": nq, "build_s": build_s,
+           "build_peak_rise_mib": _status("VmHWM") - base, "peak_is_exact": exact_peak,
+           "exact_recall": {"R@1": float(np.mean(best_row == np.arange(nq)))}}
+    with tempfile.TemporaryDirectory(dir=args.huge_dir) as tmp:
+        path = os.path.join(tmp, "gallery.pt")
+        (_, res["save_s"]) = timed(lambda: index.save(path))
+        res["index_bytes"] = os.path.getsize(os.path.join(tmp, "gallery.faiss"))
+        del index
+        before_load = _status("VmRSS")
+        loaded, res["load_s"] = timed(lambda: GalleryIndex.load(path))
+        res["rss_after_load_mib"] = _status("VmRSS") - before_load
+        rows = np.zeros((nq, 10), np.int64)
+        t = time.perf_counter()
+        for i in range(nq):  # one query at a time
+            rows[i] = loaded.search(query[i:i + 1], 10)[1][0].numpy()
+        res["ms_per_query"] = 1e3 * (time.perf_counter() - t) / nq
+        res["rss_after_search_mib"] = _status("VmRSS") - before_load
+        res["recall"] = recall_from_topk(rows)
+    res["peak_mib"] = _status("VmHWM") - base
+    res["load"] = load_average()
+    print(json.dumps(res))
 
 
 def _status(field):
@@ -87,6 +171,8 @@ def run_case(args):
     torch.set_num_threads(args.threads)
     from geoloc.eval import GalleryIndex, recall_at_k
 
+    if args.case == "huge":
+        return run_huge(args)
     small = args.case.startswith("small")
     n_ref = args.n if small else args.large_n
     n_query = args.n if small else args.large_queries
@@ -117,7 +203,8 @@ def run_case(args):
     print(json.dumps(res))
 
 
-SWEPT = {"ivfpq": "nprobe", "pq_refine": "k_factor", "ivfpq_refine": "nprobe", "hnsw": "ef_search"}
+SWEPT = {"ivfpq": "nprobe", "pq_refine": "k_factor", "ivfpq_refine": "nprobe", "pq_sq8": "k_factor",
+         "hnsw": "ef_search"}
 IVF_K_FACTOR = 16  # ivfpq_refine sweeps nprobe at this shortlist multiple
 
 
@@ -129,7 +216,8 @@ def run_approximate(args, kind, query, ref):
 
     faiss.omp_set_num_threads(args.threads)
     index = GalleryIndex(ref.shape[1], backend="faiss", kind=kind, nlist=args.nlist, m=args.m, nbits=args.nbits,
-                         k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m, ef_construction=args.ef_construction)
+                         coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m,
+                         ef_construction=args.ef_construction)
     _, build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)))
     knob = SWEPT[kind]
     sweep = []
@@ -166,7 +254,7 @@ def fmt_recall(r):
 def describe(kind, args):
     return {"ivfpq": f"nlist {args.nlist} m {args.m}x{args.nbits}", "pq_refine": f"m {args.m}x4",
             "ivfpq_refine": f"nlist {args.nlist} m {args.m}x4 k_factor {IVF_K_FACTOR}",
-            "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}"}[kind]
+            "pq_sq8": f"m {args.coarse_m}x4 + SQ8", "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}"}[kind]
 
 
 def main(args, argv):
@@ -206,6 +294,20 @@ def main(args, argv):
                          else f"{'':9s} {'':9s} {'':7s}")
                 print(f"  {name:60s} {ms * best:8.2f}{spread:>8s} {kept[0]:>8s} {kept[1]:>9s} {sizes}  "
                       f"{fmt_recall(p['recall'])}   {r['load'] if i == 0 else ''}")
+    if args.huge_n:
+        r = spawn("huge", argv)
+        results.append(r)
+        kept = 100 * r["recall"]["R@1"] / r["exact_recall"]["R@1"]
+        print(f"\n[3] largest gallery: pq_sq8 (m {args.coarse_m}x4 + SQ8, k_factor {IVF_K_FACTOR}), "
+              f"{r['n_ref']:,} references, D = {r['dim']} ({r['n_ref'] * r['dim'] * 4 / 2**30:.1f} GiB of float32, "
+              f"never held), {r['n_query']} queries one at a time, {args.threads} thread(s)\n"
+              f"  build (train + add, streamed) {r['build_s']:.0f} s, peak RSS rise {r['build_peak_rise_mib']:.0f} "
+              f"MiB; index file {r['index_bytes'] / 2**30:.2f} GiB ({r['index_bytes'] / r['n_ref']:.1f} B a "
+              f"reference, {r['index_bytes'] / r['n_ref'] * 1e6 / 2**30:.3f} GiB per million); save "
+              f"{r['save_s']:.0f} s, memory-mapped load {r['load_s']:.1f} s (+{r['rss_after_load_mib']:.0f} MiB RSS, "
+              f"+{r['rss_after_search_mib']:.0f} MiB after the searches)\n"
+              f"  {r['ms_per_query']:.2f} ms/query; R@1 {100 * r['recall']['R@1']:.1f}% against the exact "
+              f"{100 * r['exact_recall']['R@1']:.1f}% ({kept:.1f}% kept)   load avg {r['load']}")
     if not all(r["peak_is_exact"] for r in results):
         print("  (peak RSS could not be reset after the data was made: peaks include making the data)")
 
@@ -227,6 +329,7 @@ if __name__ == "__main__":
     parser.add_argument("--train-points", type=int, default=65536, help="IVF / PQ training sample (>= 39 nlist)")
     parser.add_argument("--nlist", type=int, default=1024)
     parser.add_argument("--m", type=int, default=64)
+    parser.add_argument("--coarse-m", type=int, default=32, help="pq_sq8: 4-bit sub-quantisers of the coarse code")
     parser.add_argument("--nbits", type=int, default=8, help="ivfpq bits per sub-code (the refine kinds use 4)")
     parser.add_argument("--nprobe", type=int, nargs="+", default=[16, 64, 256, 512], help="IVF lists visited per query")
     parser.add_argument("--k-factor", type=int, nargs="+", default=[4, 16], help="pq_refine shortlist multiple")
@@ -236,6 +339,9 @@ if __name__ == "__main__":
     parser.add_argument("--repeat", type=int, default=2, help="searches per setting (best and worst printed)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--huge-n", type=int, default=0, help="the largest gallery (pq_sq8, streamed; 0 skips)")
+    parser.add_argument("--huge-queries", type=int, default=300, help="its queries, timed one at a time")
+    parser.add_argument("--huge-dir", default=None, help="where its index file is written (default: the temp dir)")
     parser.add_argument("--case", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.case:

@@ -3,7 +3,7 @@
 Every app is reachable from it:
 - train, evaluate, localize, export run the repository's Hydra entry points (train.py, evaluate.py, localize.py,
   export.py) with the same arguments, so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`;
-- serve is a module with `USAGE` (text) and `main(args) -> exit code`, imported only when named, so
+- serve and gallery are modules with `USAGE` (text) and `main(args) -> exit code`, imported only when named, so
   `geoloc --help` works without the optional extras a subcommand needs.
 """
 
@@ -29,6 +29,7 @@ SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
     "serve": ("geoloc.apps.serve.command", "answer POST /localize and GET /health over HTTP", "serve"),
     "robustness": ("geoloc.apps.robustness", "one table of a checkpoint at each FoV, heading known / unknown, with "
                    "distractors and on another dataset", None),
+    "gallery": ("geoloc.apps.gallery.command", "merge SHARD_DIR... out=DIR: one gallery from shard jobs", "faiss"),
 }
 
 

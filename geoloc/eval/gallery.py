@@ -11,15 +11,25 @@ Two backends:
     one billion vectors: re-rank with source coding", ICASSP 2011).
   - ``ivfpq_refine``: the same with inverted lists in front (``IndexIVFPQFastScan``): only ``nprobe`` of ``nlist``
     lists are scanned.
+  - ``pq_sq8``: the compact kind: every reference scanned as a 4-bit fast-scan PQ code of ``coarse_m``
+    sub-quantisers (``coarse_m / 2`` bytes), the best ``k_factor * k`` re-ranked from 8-bit scalar-quantised copies
+    of the vectors (``IndexRefine`` over ``IndexScalarQuantizer`` SQ8, FAISS's ``"PQ32x4fs,Refine(SQ8)"``): dim + 16
+    bytes a reference, a quarter of the float32 vectors that ``pq_refine`` keeps (0.49 GiB per million at D 512).
   - ``hnsw``: a navigable small-world graph over the full vectors (``IndexHNSWFlat``; Malkov & Yashunin, TPAMI
     2018): ``hnsw_m`` links per node, ``ef_construction`` / ``ef_search`` candidates while building / searching.
-  The refine kinds and ``hnsw`` return exact inner products of the rows they return; ``ivfpq`` returns PQ estimates.
+  ``pq_refine``, ``ivfpq_refine`` and ``hnsw`` return exact inner products of the rows they return; ``pq_sq8``
+  returns SQ8 estimates (within about 1e-3), ``ivfpq`` PQ estimates.
 
 Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b. What is added,
 trained on or searched goes through `geoloc.eval.descriptors.unit_rows`, as in `recall_at_k`: rows off unit length
 are normalised (cosine), NaN/inf rows raise FloatingPointError, all-zero rows ValueError, on both backends. Results
 of either backend are ordered best first, the lower row first among equal scores (`geoloc.eval.candidates.ordered`).
 A flat index gives back its stored vectors (`vectors`), so a saved gallery can be scored exactly.
+
+Built in parts: `trained_empty` gives an index's trained, empty copy (the codebook every part is filled from), and
+`merge` appends other parts' rows with FAISS's own ``merge_from`` (their codes are copied, nothing is re-encoded).
+A FAISS index is saved with ``faiss.write_index`` into a file beside the record and read back memory-mapped
+(``IO_FLAG_MMAP_IFC``), so neither saving nor loading copies it whole into memory.
 """
 from __future__ import annotations
 
@@ -38,8 +48,10 @@ __all__ = ["GalleryIndex", "import_faiss"]
 
 _FORMAT = "geoloc.gallery/1"
 _ADD_BLOCK = 65536
-KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "hnsw")
-PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine")  # m sub-quantisers must divide dim
+TRAIN_POINTS = 200_000  # the most vectors the quantisers train on (a seeded sample of them)
+KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "hnsw")
+PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8")  # their sub-quantisers must divide dim
+REFINE_KINDS = ("pq_refine", "ivfpq_refine", "pq_sq8")  # IndexRefine: k_factor * k candidates re-ranked
 
 
 def import_faiss():
@@ -70,6 +82,10 @@ def _ivfpq_refine(faiss, dim, p):
     return faiss.IndexRefineFlat(ivf)
 
 
+def _pq_sq8(faiss, dim, p):
+    return faiss.index_factory(dim, f"PQ{p['coarse_m']}x4fs,Refine(SQ8)", faiss.METRIC_INNER_PRODUCT)
+
+
 def _hnsw(faiss, dim, p):
     index = faiss.IndexHNSWFlat(dim, p["hnsw_m"], faiss.METRIC_INNER_PRODUCT)
     index.hnsw.efConstruction = p["ef_construction"]  # a build knob: set before the first add
@@ -77,12 +93,17 @@ def _hnsw(faiss, dim, p):
 
 
 _BUILDERS = {"flat": _flat, "ivfpq": _ivfpq, "pq_refine": _pq_refine, "ivfpq_refine": _ivfpq_refine,
-             "hnsw": _hnsw}
+             "pq_sq8": _pq_sq8, "hnsw": _hnsw}
+
+
+def sub_quantisers(kind: str, params: dict) -> tuple[str, int]:
+    """(the knob, its value) of a PQ kind's sub-quantisers, which must divide the descriptor dim."""
+    return ("coarse_m", params["coarse_m"]) if kind == "pq_sq8" else ("m", params["m"])
 
 
 def _set_search_knobs(faiss, kind: str, index, p: dict) -> None:
     """Set the search-time knobs from ``params``, which is what gallery.json records, so the two always agree."""
-    if kind in ("pq_refine", "ivfpq_refine"):
+    if kind in REFINE_KINDS:
         index = faiss.downcast_index(index)
         index.k_factor = float(p["k_factor"])
         index = faiss.downcast_index(index.base_index)
@@ -100,11 +121,20 @@ def training_points(kind: str, params: dict) -> tuple[int, str]:
     if kind in ("ivfpq", "ivfpq_refine"):
         parts.append((params["nlist"], f"{params['nlist']} inverted lists (nlist)"))
     if kind in PQ_KINDS:
-        bits = params["nbits"] if kind == "ivfpq" else 4
+        bits = params["nbits"] if kind == "ivfpq" else 4  # the fast-scan kinds' codes are 4-bit
         parts.append((2 ** bits, f"{2 ** bits} centroids per sub-quantiser ({bits}-bit codes)"))
     if not parts:
         return 0, "nothing"
     return max(n for n, _ in parts), " and ".join(what for _, what in parts)
+
+
+def training_rows(num: int, max_points: int = TRAIN_POINTS, seed: int = 0) -> torch.Tensor | None:
+    """The rows of `num` references that the quantisers train on, in the order they are given to k-means: a
+    seeded sample of `max_points` of them, or None (all of them, in order) when there are no more than that. A
+    codebook trained from these rows of a split alone equals the one a whole gallery of it trains."""
+    if num <= max_points:
+        return None
+    return torch.randperm(num, generator=torch.Generator().manual_seed(seed))[:max_points]
 
 
 def _positive_ints(values: dict, what: str) -> dict:
@@ -123,7 +153,8 @@ class IndexParams:
     m: int = 64  # PQ kinds: sub-quantisers; must divide the descriptor dim
     nbits: int = 8  # ivfpq: bits per sub-code (the refine kinds use 4-bit fast-scan codes)
     nprobe: int = 16  # IVF kinds: lists visited per query
-    k_factor: int = 16  # refine kinds: k_factor * k PQ candidates re-ranked by their exact inner products
+    k_factor: int = 16  # refine kinds: k_factor * k PQ candidates re-ranked (pq_sq8: from their SQ8 codes)
+    coarse_m: int = 32  # pq_sq8: 4-bit sub-quantisers of the coarse code (coarse_m / 2 bytes a reference)
     hnsw_m: int = 32  # hnsw: links per node
     ef_construction: int = 40  # hnsw: candidate list while building
     ef_search: int = 256  # hnsw: candidate list while searching (128 kept 92% of the exact R@1 at 1M, 256 97.5%)
@@ -160,8 +191,9 @@ class GalleryIndex:
         if unknown:
             raise TypeError(f"GalleryIndex has no knob {unknown}; its knobs are {[f.name for f in fields(IndexParams)]}")
         params = replace(params or IndexParams(), **knobs)
-        if kind in PQ_KINDS and dim % params.m:
-            raise ValueError(f"{kind} needs m (sub-quantisers) to divide dim, got dim={dim}, m={params.m}")
+        if kind in PQ_KINDS and dim % sub_quantisers(kind, vars(params))[1]:
+            knob, m = sub_quantisers(kind, vars(params))
+            raise ValueError(f"{kind} needs {knob} (sub-quantisers) to divide dim, got dim={dim}, {knob}={m}")
         if kind == "ivfpq" and params.nbits > 16:
             raise ValueError(f"ivfpq needs nbits (bits per sub-code) in 1..16, got {params.nbits}")
         self.dim, self.backend, self.kind = int(dim), backend, kind
@@ -172,6 +204,7 @@ class GalleryIndex:
         if self.chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         self._index = None
+        self._mapped = False  # a FAISS index memory-mapped read-only from its file (load): it cannot change
         if backend == "faiss":
             faiss = import_faiss()
             self._index = _BUILDERS[kind](faiss, self.dim, self.params)
@@ -197,8 +230,9 @@ class GalleryIndex:
             raise ValueError(f"{name} must have dimension {self.dim}, got {x.shape[1]}")
         return unit_rows(x, name)
 
-    def train(self, descriptors, max_points: int = 200_000, seed: int = 0) -> None:
-        """Train the IVF / PQ quantisers on (a seeded sample of at most ``max_points`` of) the descriptors."""
+    def train(self, descriptors, max_points: int = TRAIN_POINTS, seed: int = 0) -> None:
+        """Train the IVF / PQ quantisers on (a seeded sample of at most ``max_points`` of: `training_rows`) the
+        descriptors."""
         if self.backend != "faiss" or self._index.is_trained:
             return
         x = self._check(descriptors, "reference")
@@ -206,14 +240,16 @@ class GalleryIndex:
         if x.shape[0] < needed:
             raise ValueError(f"the {self.kind} index trains {trains}, so it needs at least {needed} descriptors to "
                              f"train on, got {x.shape[0]}: use kind='flat' (exact, and fast at this size)")
-        if x.shape[0] > max_points:
-            x = x[torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:max_points]]
+        rows = training_rows(x.shape[0], max_points, seed)
+        if rows is not None:
+            x = x[rows]
         self._index.train(np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32))
 
     def add(self, descriptors) -> "GalleryIndex":
         """Append N x dim descriptors; their row numbers continue from ``len(self)``. Trains IVF / PQ if needed."""
         x = self._check(descriptors, "reference")
         if self.backend == "faiss":
+            self._writable("add to")
             if not self._index.is_trained:
                 self.train(x)
             for s in range(0, x.shape[0], _ADD_BLOCK):  # IVF-PQ holds a residual per added row: add in blocks
@@ -225,6 +261,54 @@ class GalleryIndex:
         # The first block is kept without a copy when it is already on the right device.
         self._descriptors = x if self._descriptors is None else torch.cat([self._descriptors, x.to(self._descriptors)])
         return self
+
+    @property
+    def is_trained(self) -> bool:
+        """Whether the quantisers are trained (always, for the kinds that train nothing)."""
+        return self.backend == "torch" or bool(self._index.is_trained)
+
+    def trained_empty(self) -> "GalleryIndex":
+        """A copy with the same trained quantisers (the codebook) and no rows: what each part of a gallery built
+        in parts is filled from."""
+        if not self.is_trained:
+            raise ValueError(f"the {self.kind} index is not trained yet: train it (or add descriptors) first")
+        self._writable("copy")  # FAISS's clone of a mapped index shares the mapping, and its reset aborts
+        empty = GalleryIndex(self.dim, self.backend, self.kind, device=self._device, chunk_size=self.chunk_size,
+                             **self.params)
+        if self.backend == "faiss":
+            faiss = import_faiss()
+            empty._index = faiss.clone_index(self._index)
+            empty._index.reset()
+            _set_search_knobs(faiss, self.kind, empty._index, self.params)
+        return empty
+
+    def merge(self, other: "GalleryIndex") -> "GalleryIndex":
+        """Append `other`'s rows (their row numbers continue from ``len(self)``), moving their stored codes with
+        FAISS's ``merge_from``, which leaves `other` empty: both must hold the same kind, built from the same
+        codebook (`trained_empty`), and neither may be memory-mapped."""
+        if (other.backend, other.kind, other.dim) != (self.backend, self.kind, self.dim):
+            raise ValueError(f"cannot merge a {other.backend} {other.kind} index of dim {other.dim} into a "
+                             f"{self.backend} {self.kind} index of dim {self.dim}")
+        if len(other) == 0:
+            return self
+        if self.backend == "torch":
+            return self.add(other._descriptors)
+        self._writable("merge into")
+        other._writable("merge (FAISS empties it) from")
+        faiss = import_faiss()
+        target, source = faiss.downcast_index(self._index), faiss.downcast_index(other._index)
+        if self.kind in REFINE_KINDS:  # IndexRefine has no merge_from: merge its two parts, then count the rows
+            for part in ("base_index", "refine_index"):
+                _merge_from(faiss, getattr(target, part), getattr(source, part))
+            target.ntotal += source.ntotal
+        else:
+            _merge_from(faiss, target, source)
+        return self
+
+    def _writable(self, what: str) -> None:
+        if self._mapped:
+            raise ValueError(f"cannot {what} a gallery index memory-mapped from its file: load it with "
+                             "GalleryIndex.load(path, mmap=False)")
 
     def search(self, query, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Top-k references per query (Q x dim): (Q x k scores, Q x k row numbers), best first (the lower row
@@ -244,7 +328,7 @@ class GalleryIndex:
             scores, idx = self._index.search(q, k)
             return ordered(torch.from_numpy(scores), torch.from_numpy(idx))
         # Queries per call: FAISS holds k (refine kinds: k_factor * k) candidates per query of a call.
-        per_query = k * (self.params["k_factor"] if self.kind.endswith("_refine") else 1)
+        per_query = k * (self.params["k_factor"] if self.kind in REFINE_KINDS else 1)
         step = max(1, SCORE_BUDGET // per_query)
         blocks = [self._index.search(q[s:s + step], k) for s in range(0, q.shape[0], step)]
         return ordered(torch.from_numpy(np.concatenate([b[0] for b in blocks])),
@@ -262,23 +346,31 @@ class GalleryIndex:
         return torch.from_numpy(self._index.reconstruct_n(0, len(self)))
 
     def save(self, path: str | Path) -> None:
-        """One file (``torch.save`` of a plain dict) for either backend; reload with ``GalleryIndex.load``."""
+        """``torch.save`` of a plain dict at `path` for either backend; a FAISS index goes into a file beside it
+        (`faiss_file`, ``faiss.write_index``, straight from the index). Reload with ``GalleryIndex.load``."""
         state = dict(format=_FORMAT, dim=self.dim, backend=self.backend, kind=self.kind, params=self.params,
                      chunk_size=self.chunk_size)
+        path = Path(path)
         if self.backend == "faiss":
             faiss = import_faiss()
-            state["faiss_index"] = torch.from_numpy(faiss.serialize_index(self._index))
+            blob = faiss_file(path)
+            tmp_blob = blob.with_name(blob.name + ".tmp")
+            faiss.write_index(self._index, str(tmp_blob))
+            state.update(faiss_file=blob.name, faiss_bytes=tmp_blob.stat().st_size)
+            tmp_blob.replace(blob)
         else:
             state["descriptors"] = None if self._descriptors is None else self._descriptors.cpu()
-        path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
         torch.save(state, tmp)
         tmp.replace(path)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | torch.device | None = None) -> "GalleryIndex":
-        """Load a saved gallery; the torch backend goes to ``device`` (default: the CPU). A missing file raises
-        FileNotFoundError; a truncated, corrupt or foreign one ValueError naming the file."""
+    def load(cls, path: str | Path, device: str | torch.device | None = None, mmap: bool = True) -> "GalleryIndex":
+        """Load a saved gallery; the torch backend goes to ``device`` (default: the CPU). A FAISS index is
+        memory-mapped read-only from its file where FAISS can (`mmap`; the codes of flat, PQ, SQ and refine
+        indexes): pages are read as searches touch them, and such an index cannot grow (load with mmap=False to
+        add or merge into it). A missing file raises FileNotFoundError; a truncated, corrupt or foreign one
+        ValueError naming the file."""
         path = Path(path)
         buf = io.BytesIO(path.read_bytes())
         try:
@@ -293,7 +385,8 @@ class GalleryIndex:
                         chunk_size=state["chunk_size"], **state["params"])
             if index.backend == "faiss":
                 faiss = import_faiss()
-                index._index = faiss.deserialize_index(state["faiss_index"].numpy())
+                index._index = _read_faiss(faiss, path, state, mmap)
+                index._mapped = mmap and "faiss_file" in state
                 if index._index.d != index.dim:
                     raise ValueError(f"its FAISS index has dimension {index._index.d}, its record {index.dim}")
                 _set_search_knobs(faiss, index.kind, index._index, index.params)
@@ -304,6 +397,31 @@ class GalleryIndex:
         except Exception as err:  # a record without its keys, a FAISS blob cut inside the archive
             raise ValueError(f"the gallery index {path} is corrupt ({_first_line(err)})") from err
         return index
+
+
+def _merge_from(faiss, target, source) -> None:
+    """FAISS's merge_from: inverted lists store row ids (shifted by the rows already held), flat codes are stored
+    in row order and take none."""
+    target, source = faiss.downcast_index(target), faiss.downcast_index(source)
+    target.merge_from(source, target.ntotal if isinstance(target, faiss.IndexIVF) else 0)
+
+
+def faiss_file(path: Path) -> Path:
+    """Where the FAISS index of the gallery index file `path` is written: beside it, `<stem>.faiss`."""
+    return Path(path).with_suffix(".faiss")
+
+
+def _read_faiss(faiss, path: Path, state: dict, mmap: bool):
+    if "faiss_index" in state:  # saved whole inside the record by earlier versions
+        return faiss.deserialize_index(state["faiss_index"].numpy())
+    blob = path.with_name(state["faiss_file"])
+    if not blob.is_file():
+        raise ValueError(f"its FAISS index {blob} is missing: the two files are written together")
+    if blob.stat().st_size != state["faiss_bytes"]:
+        raise ValueError(f"its FAISS index {blob} holds {blob.stat().st_size} bytes, {state['faiss_bytes']} "
+                         f"were written: it is truncated or was replaced")
+    flags = faiss.IO_FLAG_MMAP_IFC | faiss.IO_FLAG_READ_ONLY if mmap else 0
+    return faiss.read_index(str(blob), flags)
 
 
 def _first_line(err: Exception) -> str:

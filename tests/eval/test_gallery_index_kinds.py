@@ -1,4 +1,5 @@
-"""The approximate FAISS gallery kinds (pq_refine, ivfpq_refine, hnsw) and gallery.kind in GalleryConfig."""
+"""The approximate FAISS gallery kinds (pq_refine, ivfpq_refine, pq_sq8, hnsw), galleries merged from parts, and
+gallery.kind in GalleryConfig."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from geoloc.tasks.crossview.gallery import GalleryConfig, build_index
 faiss = pytest.importorskip("faiss")
 
 DIM = 32
-SMALL = dict(nlist=16, m=8, nprobe=8, k_factor=8, hnsw_m=16, ef_construction=40, ef_search=64)
+SMALL = dict(nlist=16, m=8, coarse_m=8, nprobe=8, k_factor=8, hnsw_m=16, ef_construction=40, ef_search=64)
 NEW_KINDS = ["pq_refine", "ivfpq_refine", "hnsw"]
 
 
@@ -49,7 +50,7 @@ def faiss_knobs(index: GalleryIndex) -> dict:
     """The search knobs as the FAISS objects hold them (not as ``params`` says)."""
     inner = faiss.downcast_index(index._index)
     knobs = {}
-    if index.kind in ("pq_refine", "ivfpq_refine"):
+    if index.kind in ("pq_refine", "ivfpq_refine", "pq_sq8"):
         knobs["k_factor"] = inner.k_factor
         inner = faiss.downcast_index(inner.base_index)
     if index.kind in ("ivfpq", "ivfpq_refine"):
@@ -79,7 +80,42 @@ def test_refine_rescores_what_ivfpq_only_estimates(easy):
     assert np.abs(scores.numpy() - brute).max() > 1e-3  # PQ estimates: the refine test above has teeth
 
 
-@pytest.mark.parametrize("kind", ["ivfpq", *NEW_KINDS])
+def test_pq_sq8_keeps_the_exact_top1_from_a_quarter_of_the_bytes(easy, tmp_path):
+    query, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind="pq_sq8", **SMALL).add(reference)
+    scores, rows = index.search(query, 10)
+    brute = np.einsum("qd,qkd->qk", query.astype(np.float64), reference[rows.numpy()].astype(np.float64))
+    np.testing.assert_allclose(scores.numpy(), brute, atol=5e-3)  # SQ8 estimates of the rows' inner products
+    assert (np.diff(scores.numpy(), axis=1) <= 1e-6).all()
+    top1_kept = np.mean(rows.numpy()[:, 0] == exact_top(query, reference, 1)[:, 0])
+    assert top1_kept >= 0.97, f"pq_sq8 kept only {top1_kept:.3f} of the exact top-1"
+    index.save(tmp_path / "gallery.pt")
+    per_reference = (tmp_path / "gallery.faiss").stat().st_size / len(reference)
+    # one byte a dimension (SQ8) and coarse_m / 2 bytes of 4-bit codes, plus the codebooks spread over the rows
+    assert DIM + SMALL["coarse_m"] / 2 <= per_reference < DIM + SMALL["coarse_m"] / 2 + 2, per_reference
+
+
+@pytest.mark.parametrize("kind", ["flat", "pq_sq8", "ivfpq_refine", "torch"])
+def test_a_gallery_merged_from_parts_filled_from_one_codebook_equals_the_one_built_whole(easy, kind):
+    query, reference = easy
+    backend, kind = ("torch", "flat") if kind == "torch" else ("faiss", kind)
+    whole = GalleryIndex(DIM, backend=backend, kind=kind, **SMALL).add(reference)
+    codebook = GalleryIndex(DIM, backend=backend, kind=kind, **SMALL)
+    codebook.train(reference)
+    parts = [codebook.trained_empty().add(reference[s:s + 1700]) for s in range(0, len(reference), 1700)]
+    assert len(codebook) == 0 and [len(p) for p in parts] == [1700, 1700, 1600]
+    merged = parts[0]
+    for part in parts[1:]:
+        merged.merge(part)
+    assert len(merged) == len(reference)
+    (s1, r1), (s2, r2) = whole.search(query, 10), merged.search(query, 10)
+    torch.testing.assert_close(r2, r1, rtol=0, atol=0)
+    torch.testing.assert_close(s2, s1, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="cannot merge"):
+        merged.merge(GalleryIndex(DIM + 8, backend=backend, kind=kind, **SMALL))
+
+
+@pytest.mark.parametrize("kind", ["ivfpq", *NEW_KINDS, "pq_sq8"])
 def test_save_load_round_trip_keeps_results_and_search_knobs(easy, tmp_path, kind):
     query, reference = easy
     index = GalleryIndex(DIM, backend="faiss", kind=kind, nbits=4, **SMALL).add(reference)
@@ -123,9 +159,18 @@ def test_bad_kind_and_parameters_are_named():
 def test_gallery_config_kind_auto_and_errors():
     cfg = GalleryConfig()
     assert cfg.kind == "auto"
-    assert cfg.resolved(cfg.auto_exact_below - 1) == ("torch", "flat")
-    assert cfg.resolved(cfg.auto_exact_below) == ("faiss", "pq_refine")
-    assert GalleryConfig(backend="faiss", kind="hnsw").resolved(10) == ("faiss", "hnsw")
+    assert cfg.resolved(cfg.auto_exact_below - 1, 512) == ("torch", "flat")
+    assert cfg.resolved(cfg.auto_exact_below, 512) == ("faiss", "pq_refine")
+    assert GalleryConfig(backend="faiss", kind="hnsw").resolved(10, 512) == ("faiss", "hnsw")
+    # the float32 vectors of 4M x 512 are 8 GiB: pq_refine keeps them; one reference more and pq_sq8 is built
+    assert cfg.max_memory == "8GiB" and cfg.resolved(4 * 2**20, 512) == ("faiss", "pq_refine")
+    assert cfg.resolved(4 * 2**20 + 1, 512) == ("faiss", "pq_sq8")
+    assert GalleryConfig(max_memory="100MB").resolved(cfg.auto_exact_below, 256) == ("faiss", "pq_sq8")  # 102 MB
+    assert GalleryConfig(max_memory="103MB").resolved(cfg.auto_exact_below, 256) == ("faiss", "pq_refine")
+    assert GalleryConfig(max_memory=102_400_000).resolved(cfg.auto_exact_below, 256) == ("faiss", "pq_refine")
+    for bad in ("8 GiBs", "-1GB", "lots", "0"):
+        with pytest.raises(ValueError, match=rf"gallery.max_memory={bad!r}: give a size such as 8GiB"):
+            GalleryConfig(max_memory=bad)
     with pytest.raises(ValueError, match="gallery.kind must be one of"):
         GalleryConfig(kind="ivf")
     with pytest.raises(ValueError, match="gallery.kind=pq_refine needs gallery.backend=faiss"):
@@ -179,7 +224,26 @@ def test_a_truncated_or_corrupt_index_file_is_named(tmp_path, backend):
         GalleryIndex.load(tmp_path / "gallery.pt")
     if backend == "faiss":  # a readable archive whose FAISS index is cut
         GalleryIndex(DIM, backend=backend).add(reference).save(tmp_path / "gallery.pt")
-        state = torch.load(tmp_path / "gallery.pt", weights_only=True)
-        torch.save({**state, "faiss_index": state["faiss_index"][:100]}, tmp_path / "gallery.pt")
+        blob = tmp_path / "gallery.faiss"
+        data = blob.read_bytes()
+        blob.write_bytes(data[:100])
+        with pytest.raises(ValueError, match=rf"the gallery index {tmp_path / 'gallery.pt'} is corrupt .*"
+                                             rf"{blob} holds 100 bytes, {len(data)} were written"):
+            GalleryIndex.load(tmp_path / "gallery.pt")
+        blob.write_bytes(b"\0" * len(data))  # as long as written, but not a FAISS index
         with pytest.raises(ValueError, match=rf"the gallery index {tmp_path / 'gallery.pt'} is corrupt \("):
             GalleryIndex.load(tmp_path / "gallery.pt")
+
+
+def test_a_memory_mapped_index_refuses_to_change_instead_of_aborting(easy, tmp_path):
+    query, reference = easy
+    GalleryIndex(DIM, backend="faiss", kind="pq_sq8", **SMALL).add(reference).save(tmp_path / "gallery.pt")
+    mapped = GalleryIndex.load(tmp_path / "gallery.pt")
+    writable = GalleryIndex.load(tmp_path / "gallery.pt", mmap=False)
+    for change in (lambda: mapped.add(reference[:5]), mapped.trained_empty, lambda: mapped.merge(writable),
+                   lambda: writable.merge(mapped)):
+        with pytest.raises(ValueError, match=r"memory-mapped from its file: load it with .*mmap=False"):
+            change()
+    assert len(mapped.search(query, 3)[1]) == len(query)
+    writable.merge(GalleryIndex.load(tmp_path / "gallery.pt", mmap=False))
+    assert len(writable) == 2 * len(reference) and len(writable.trained_empty()) == 0

@@ -22,10 +22,13 @@ def pairs_split(n, root="/data", name="pairs"):
 
 
 def gallery_evaluate(monkeypatch, split, query, reference, meta=META, **cfg):
-    """crossview_gallery.evaluate of `split` with encode_split() replaced by the given descriptors."""
-    monkeypatch.setattr(crossview_gallery, "encode_split",
-                        lambda task, engine, data, batch_size, sides=("query", "reference"):
-                        {k: {"query": query, "reference": reference}[k] for k in sides})
+    """crossview_gallery.evaluate of `split` with encode_split() replaced by the given descriptors (`rows`: those
+    references)."""
+    def encode_split(task, engine, data, batch_size, sides=("query", "reference"), rows=None):
+        given = {"query": query, "reference": reference if rows is None else reference[list(rows)]}
+        return {k: given[k] for k in sides}
+
+    monkeypatch.setattr(crossview_gallery, "encode_split", encode_split)
     task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
     engine = SimpleNamespace(device=torch.device("cpu"))
     return crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), meta)

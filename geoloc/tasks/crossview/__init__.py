@@ -5,7 +5,8 @@ RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc
 (localize.py, `geoloc serve`, export.py) use what this package exports and nothing deeper: `CrossViewEncoder` (a
 checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and a saved gallery,
 checked and bound to the weights that built it (`open_gallery` -> `SavedGallery`: the index and its places,
-`Places`, `POSITION_KEYS`). `config_nodes()` gives the defaults conf/ extends. The package registers itself as the task `crossview`.
+`Places`, `POSITION_KEYS`), and `merge_shards` (one gallery from shard jobs' folders: `geoloc gallery merge`).
+`config_nodes()` gives the defaults conf/ extends. The package registers itself as the task `crossview`.
 """
 
 import sys
@@ -14,6 +15,7 @@ from geoloc import registry
 from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
 from geoloc.tasks.crossview.gallery_folder import SavedGallery, open_gallery
+from geoloc.tasks.crossview.gallery_shards import merge_shards
 from geoloc.tasks.crossview.localization import LocalizationResult
 from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
 from geoloc.tasks.crossview.run import evaluate, train
@@ -21,4 +23,5 @@ from geoloc.tasks.crossview.run import evaluate, train
 registry.register("task", "crossview", sys.modules[__name__])
 
 __all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "SavedGallery",
-           "canonical_config", "config_nodes", "evaluate", "open_gallery", "read_places", "train"]
+           "canonical_config", "config_nodes", "evaluate", "merge_shards", "open_gallery", "read_places",
+           "train"]

@@ -6,6 +6,13 @@
   `dataset` reader, the `split`, its absolute `root` and `references_sha256` (the ordered reference paths,
   places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
 - references.jsonl, queries.jsonl: the places (places.py).
+A FAISS index's codes lie in gallery.faiss beside gallery.pt (GalleryIndex.save).
+
+A part of a gallery built across jobs (gallery.py `build_part`) is such a folder too, with a `part` record in
+gallery.json: a codebook (`role: codebook`, no rows, its index file's `codebook_sha256`) or a shard (`role: shard`,
+`shard_index`, `num_shards`, its rows `start`..`stop` of the split's `split_references`, and the
+`codebook_sha256` it was filled from). `open_gallery` refuses parts; `open_codebook` opens a codebook for a shard;
+`geoloc gallery merge` joins shards into a gallery (gallery_shards.py).
 
 Saving writes every file into a hidden folder beside DIR (`.DIR.<random>.tmp`) and renames that folder to DIR, so
 DIR holds a whole gallery or none: an interrupted save leaves the old gallery as it was. An existing gallery is
@@ -33,8 +40,8 @@ from pathlib import Path
 
 from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.engine.checkpoint import umask
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.engine.checkpoint import file_sha256, umask
+from geoloc.eval.gallery import GalleryIndex, faiss_file
 from geoloc.tasks.crossview.places import Places, read_places, split_record, write_places
 
 INFO, INDEX = "gallery.json", "gallery.pt"
@@ -89,23 +96,37 @@ def _built_from(folder: Path) -> str:
 
 
 def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit, record: dict,
-                 overwrite: bool = False) -> dict:
-    """Write the gallery of `split` (its references, in order, are `index`'s rows) into `folder`, whole or not at
-    all; `record` holds what built it (ckpt, model_fingerprint, dataset, reference_spread). Returns gallery.json."""
+                 overwrite: bool = False, rows=None) -> dict:
+    """Write the gallery of `split` (its references `rows`, default all, in order, are `index`'s rows) into
+    `folder`, whole or not at all; `record` holds what built it (ckpt, model_fingerprint, dataset,
+    reference_spread; a part's `part`). Returns gallery.json."""
+    def fill(tmp: Path) -> dict:
+        index.save(tmp / INDEX)
+        info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
+                **index.params, **record, **write_places(tmp, split, rows)}
+        if info.get("part", {}).get("role") == "codebook":
+            info["codebook_sha256"] = file_sha256(faiss_file(tmp / INDEX))
+        return info
+
+    return write_gallery_folder(folder, fill, overwrite)
+
+
+def write_gallery_folder(folder: str | Path, fill, overwrite: bool = False) -> dict:
+    """Write a gallery folder whole or not at all: `fill(tmp)` writes the index and places into a temporary folder
+    beside `folder` and returns gallery.json's record, which is written last; then the folder moves into place."""
     folder = Path(folder)
     check_target(folder, overwrite)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
     try:
         os.chmod(tmp, 0o777 & ~umask())  # mkdtemp's 0700 would keep a service run by another user out
-        index.save(tmp / INDEX)
-        info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
-                **index.params, **record, **write_places(tmp, split)}
+        info = fill(tmp)
         (tmp / INFO).write_text(json.dumps(info, indent=2) + "\n")
         _move_into_place(tmp, folder, overwrite)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # after an exchange, tmp holds the old gallery
     return info
+
 
 
 def _move_into_place(tmp: Path, folder: Path, overwrite: bool) -> None:
@@ -199,6 +220,12 @@ def open_gallery(folder: str | Path, fingerprint: str, ckpt, device=None, split:
     split. The torch backend's descriptors go to `device`."""
     folder = Path(folder)
     info = read_info(folder, ckpt)
+    if info.get("part"):
+        part = info["part"]
+        what = (f"shard {part.get('shard_index')} of {part.get('num_shards')}" if part.get("role") == "shard"
+                else "the codebook")
+        raise ConfigError(f"{folder} holds {what} of a gallery built across jobs, not a whole gallery: join the "
+                          f"shards first (geoloc gallery merge SHARD_DIR... out=DIR) and open DIR")
     check_weights(folder, info, fingerprint, ckpt)
     if split is not None:
         check_split(folder, info, split, dataset, ckpt)
@@ -213,3 +240,28 @@ def open_gallery(folder: str | Path, fingerprint: str, ckpt, device=None, split:
     except ValueError as err:  # ConfigError included: the file is named, the way out is added here
         raise ConfigError(f"{err}. {rebuild(folder, ckpt)}") from err
     return SavedGallery(folder, info, index, places)
+
+
+def open_codebook(folder: str | Path, fingerprint: str, ckpt, split: RetrievalSplit, dataset: str, kind: str,
+                  params: dict) -> SavedGallery:
+    """The codebook in `folder` (gallery.train_only=true), refused unless it was trained by these weights on this
+    split's references for an index of `kind` with these knobs `params` (the ones that shape its quantisers)."""
+    folder = Path(folder)
+    info = read_info(folder, ckpt)
+    if info.get("part", {}).get("role") != "codebook":
+        raise ConfigError(f"gallery.codebook={folder} is not a codebook: write one with python evaluate.py "
+                          f"ckpt={ckpt} gallery.train_only=true gallery.save={folder} (with the shards' gallery.kind "
+                          "and knobs)")
+    check_weights(folder, info, fingerprint, ckpt)
+    check_split(folder, {**info, "num_references": info["part"]["split_references"]}, split, dataset, ckpt)
+    differs = [f"{k} {info.get(k)!r} (codebook) vs {v!r} (here)" for k, v in {"kind": kind, **params}.items()
+               if k in ("kind", "nlist", "m", "nbits", "coarse_m", "hnsw_m") and info.get(k) != v]
+    if differs:
+        raise ConfigError(f"the codebook in {folder} was trained for another index: {'; '.join(differs)}. Give "
+                          f"every shard the codebook's gallery.kind and knobs, or train a codebook for these")
+    try:
+        index = GalleryIndex.load(folder / INDEX, mmap=False)  # no rows: small, and copied for each shard
+    except ValueError as err:
+        raise ConfigError(f"{err}. Write the codebook again: python evaluate.py ckpt={ckpt} gallery.train_only=true "
+                          f"gallery.save={folder} gallery.overwrite=true") from err
+    return SavedGallery(folder, info, index, None)

@@ -42,16 +42,22 @@ def split_record(split: RetrievalSplit) -> dict:
     """What gallery.json records of the split a gallery was built from: its name, its absolute root and the sha256
     of its reference paths (relative to the root) in gallery-row order, so a reordered split of the same size is
     told apart."""
-    digest = hashlib.sha256("\n".join(_rel(p, split.root) for p in split.references).encode()).hexdigest()
+    digest = reference_paths_sha256(_rel(p, split.root) for p in split.references)
     return {"split": split.name, "root": str(Path(split.root).resolve()), "references_sha256": digest}
 
 
-def write_places(folder: Path, split: RetrievalSplit) -> dict:
-    """Write references.jsonl and queries.jsonl; returns the keys gallery.json records about them."""
+def reference_paths_sha256(paths) -> str:
+    """sha256 of reference paths (relative to the root) in gallery-row order: what `references_sha256` records."""
+    return hashlib.sha256("\n".join(paths).encode()).hexdigest()
+
+
+def write_places(folder: Path, split: RetrievalSplit, rows=None) -> dict:
+    """Write references.jsonl (of the references `rows`, default all: a gallery built in parts holds some) and
+    queries.jsonl; returns the keys gallery.json records about them."""
     kind, query_pos, reference_pos = split.positions()
-    refs = [json.dumps({"path": _rel(p, split.root), **_position(kind, None if reference_pos is None else
-                                                                  reference_pos[i])})
-            for i, p in enumerate(split.references)]
+    refs = [json.dumps({"path": _rel(split.references[i], split.root),
+                        **_position(kind, None if reference_pos is None else reference_pos[i])})
+            for i in (range(split.num_references) if rows is None else rows)]
     queries = []
     for i, p in enumerate(split.queries):
         semi = [] if split.semi_positives is None else [int(s) for s in split.semi_positives[i] if s >= 0]
@@ -59,7 +65,8 @@ def write_places(folder: Path, split: RetrievalSplit) -> dict:
                                    **_position(kind, None if query_pos is None else query_pos[i]),
                                    "positive": int(split.positives[i]), "semi_positives": semi}))
     for name, lines in (("references.jsonl", refs), ("queries.jsonl", queries)):
-        (folder / name).write_text("\n".join(lines) + "\n")  # into the save's temporary folder (gallery_folder.py)
+        # into the save's temporary folder (gallery_folder.py)
+        (folder / name).write_text("".join(line + "\n" for line in lines))
     return {**split_record(split), "positions": kind, "query_view": split.query_view}
 
 

@@ -115,8 +115,8 @@ def test_an_interrupted_save_leaves_the_old_gallery_whole(monkeypatch, tmp_path,
     before = files_of(folder)
     real = gallery_folder.write_places
 
-    def interrupted(tmp, split):
-        real(tmp, split)
+    def interrupted(tmp, split, rows=None):
+        real(tmp, split, rows)
         raise KeyboardInterrupt("killed after the places were written")
 
     monkeypatch.setattr(gallery_folder, "write_places", interrupted)

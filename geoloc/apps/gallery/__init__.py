@@ -1,0 +1,1 @@
+"""`geoloc gallery`: work on saved galleries (command.py)."""

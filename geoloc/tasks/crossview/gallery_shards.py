@@ -1,0 +1,124 @@
+"""One gallery from the shards that independent jobs encoded (`geoloc gallery merge SHARD_DIR... out=DIR`).
+
+Each shard folder (evaluate.py gallery.num_shards=S gallery.shard_index=i gallery.save=SHARD_DIR) holds the index of
+one contiguous block of the split's references and their references.jsonl; the merge checks that the shards are
+the S blocks of one gallery, each once: the same weights (`model_fingerprint`), split (dataset, split, root,
+`references_sha256`), index kind and knobs and codebook (`codebook_sha256`), and shard indices 0..S-1 with rows that
+follow each other. It then joins their indexes with FAISS's `merge_from` (GalleryIndex.merge: the stored codes are
+moved, nothing is re-encoded or re-trained; one shard at a time is read besides the merged index), their references.jsonl in order (whose paths must hash to the split's
+`references_sha256`), takes the queries.jsonl they share, computes the reference spread from their moments, and
+writes one gallery folder (gallery_folder.write_gallery_folder: whole or not at all).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+from geoloc.config import ConfigError
+from geoloc.eval.gallery import GalleryIndex
+from geoloc.tasks.crossview.gallery_folder import INDEX, read_info, write_gallery_folder
+from geoloc.tasks.crossview.places import reference_paths_sha256
+
+# what every shard of one gallery shares: the weights, the split, the index and its codebook
+SHARED = ("model_fingerprint", "dataset", "split", "root", "references_sha256", "query_view", "positions", "dim",
+          "backend", "kind", "nlist", "m", "nbits", "coarse_m", "hnsw_m", "ef_construction", "codebook_sha256")
+
+
+def shard_command(folder, index, count) -> str:
+    return (f"python evaluate.py ckpt=CKPT [dataset=... dataset.root=...] gallery.num_shards={count} "
+            f"gallery.shard_index={index} gallery.save={folder} [gallery.codebook=CODEBOOK_DIR]")
+
+
+def read_shards(folders: list[Path]) -> list[tuple[Path, dict]]:
+    """(folder, gallery.json) of each shard, in shard order, checked to be the shards of one gallery, each once."""
+    if not folders:
+        raise ConfigError("give the shard folders to merge: geoloc gallery merge SHARD_DIR... out=DIR")
+    shards = []
+    for folder in folders:
+        info = read_info(folder)
+        part = info.get("part") or {}
+        if part.get("role") != "shard":
+            what = "a codebook" if part.get("role") == "codebook" else "a whole gallery"
+            raise ConfigError(f"{folder} holds {what}, not a shard: merge only the folders that the shard jobs "
+                              f"wrote (evaluate.py gallery.num_shards=S gallery.shard_index=i gallery.save=DIR)")
+        shards.append((Path(folder), info))
+    first, ref = shards[0]
+    for folder, info in shards[1:]:
+        differs = [f"{k} {info.get(k)!r} vs {ref.get(k)!r}" for k in SHARED if info.get(k) != ref.get(k)]
+        for k in ("num_shards", "split_references"):
+            if info["part"][k] != ref["part"][k]:
+                differs.append(f"{k} {info['part'][k]} vs {ref['part'][k]}")
+        if differs:
+            raise ConfigError(f"the shard in {folder} is not of the same gallery as the one in {first}: "
+                              f"{'; '.join(differs)}. Every shard must be encoded by the same checkpoint from the "
+                              f"same split and reference list, into the same index kind filled from the same codebook: "
+                              f"rebuild the foreign one with {shard_command(folder, info['part']['shard_index'], ref['part']['num_shards'])}")
+    count = ref["part"]["num_shards"]
+    by_index: dict[int, Path] = {}
+    for folder, info in shards:
+        i = info["part"]["shard_index"]
+        if i in by_index:
+            raise ConfigError(f"{by_index[i]} and {folder} both hold shard {i} of {count}: give each shard once")
+        by_index[i] = folder
+    missing = sorted(set(range(count)) - set(by_index))
+    if missing:
+        raise ConfigError(f"shard(s) {', '.join(map(str, missing))} of {count} are missing (given: "
+                          f"{', '.join(f'{i}: {by_index[i]}' for i in sorted(by_index))}): encode them with "
+                          f"{shard_command('SHARD_DIR', missing[0], count)}, then merge all {count}")
+    ordered = sorted(shards, key=lambda s: s[1]["part"]["shard_index"])
+    stop = 0
+    for folder, info in ordered:
+        if info["part"]["start"] != stop or info["num_references"] != info["part"]["stop"] - info["part"]["start"]:
+            raise ConfigError(f"the shard in {folder} holds rows {info['part']['start']}..{info['part']['stop']} "
+                              f"({info['num_references']} references) where rows from {stop} were expected: it was "
+                              f"written by another version of the sharding, or edited. Rebuild it with "
+                              f"{shard_command(folder, info['part']['shard_index'], count)}")
+        stop = info["part"]["stop"]
+    if stop != ref["part"]["split_references"]:
+        raise ConfigError(f"the {count} shards hold {stop} references, the split {ref['part']['split_references']}: "
+                          f"rebuild them with the same gallery.num_shards")
+    return ordered
+
+
+def merged_spread(shards: list[tuple[Path, dict]]) -> float:
+    """descriptor_spread of all references (sum over dims of the per-dim sample std) from the shards' moments."""
+    n = sum(info["num_references"] for _, info in shards)
+    dims = range(shards[0][1]["dim"])
+    total = [math.fsum(info["reference_moments"]["sum"][d] for _, info in shards) for d in dims]
+    total_sq = [math.fsum(info["reference_moments"]["sum_sq"][d] for _, info in shards) for d in dims]
+    return float(sum(math.sqrt(max(0.0, (sq - s * s / n) / max(1, n - 1))) for s, sq in zip(total, total_sq)))
+
+
+def merge_shards(folders: list[str | Path], out: str | Path, overwrite: bool = False) -> dict:
+    """Join the shard folders into one gallery folder `out`; returns its gallery.json record."""
+    shards = read_shards([Path(f) for f in folders])
+    queries = {(folder / "queries.jsonl").read_bytes() for folder, _ in shards}
+    if len(queries) != 1:
+        raise ConfigError(f"the shards' queries.jsonl differ ({', '.join(str(f) for f, _ in shards)}): they were "
+                          "written from other query lists of the split; rebuild the shards from one split")
+    index = GalleryIndex.load(shards[0][0] / INDEX, mmap=False)  # the one that grows
+    for folder, _ in shards[1:]:  # one shard at a time in memory besides the merged index
+        index.merge(GalleryIndex.load(folder / INDEX, mmap=False))
+    info = {k: v for k, v in shards[0][1].items() if k not in ("part", "reference_moments", "reference_spread")}
+
+    def fill(tmp: Path) -> dict:
+        index.save(tmp / INDEX)
+        paths = []
+        with open(tmp / "references.jsonl", "wb") as out_file:
+            for folder, _ in shards:
+                with open(folder / "references.jsonl", "rb") as part:
+                    shutil.copyfileobj(part, out_file)
+                paths += [json.loads(line)["path"] for line in (folder / "references.jsonl").read_text().splitlines()
+                          if line.strip()]
+        if reference_paths_sha256(paths) != info["references_sha256"]:
+            raise ConfigError(f"the shards' references.jsonl, joined in shard order, do not list the split's "
+                              f"references (references_sha256 differs): a shard was edited or written by another "
+                              f"version. Rebuild the shards ({', '.join(str(f) for f, _ in shards)})")
+        (tmp / "queries.jsonl").write_bytes(next(iter(queries)))
+        return {**info, "num_references": len(index), "reference_spread": merged_spread(shards),
+                "merged_from": [str(f.resolve()) for f, _ in shards]}
+
+    return write_gallery_folder(out, fill, overwrite)

@@ -1,0 +1,145 @@
+"""A gallery built across jobs: a codebook trained once, shards encoded apart, one merge (gallery_shards.py) that
+gives the one-job gallery, and refuses shards that are missing, doubled or of another gallery. On given
+descriptors: no network, no images."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from geoloc.cli import main as geoloc
+from geoloc.config import ConfigError
+from geoloc.tasks.crossview import open_gallery
+from geoloc.tasks.crossview.gallery_shards import merge_shards
+
+from helpers.gallery_runs import META, gallery_evaluate, pairs_split
+
+N, DIM = 120, 32
+KNOBS = dict(coarse_m=8, k_factor=8)
+
+
+def descriptors(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    reference = torch.nn.functional.normalize(torch.randn(N, DIM, generator=g), dim=1)
+    query = torch.nn.functional.normalize(reference + 0.6 * torch.randn(N, DIM, generator=g), dim=1)
+    return query, reference
+
+
+def job(monkeypatch, tmp_path, meta=META, seed=0, split=None, **cfg):
+    query, reference = descriptors(seed)
+    return gallery_evaluate(monkeypatch, split or pairs_split(N, tmp_path / "data"), query, reference, meta=meta,
+                            **cfg)
+
+
+@pytest.fixture(autouse=True)
+def one_faiss_thread():
+    faiss = pytest.importorskip("faiss")
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)  # OpenMP on a busy shared CPU is slow
+    yield
+    faiss.omp_set_num_threads(before)
+
+
+def shards(monkeypatch, tmp_path, kind, count=3, codebook=None, prefix="shard", **extra):
+    """The shard folders of `count` jobs (a trained kind: filled from `codebook`)."""
+    knobs = dict(backend="faiss", kind=kind, **{**(KNOBS if kind == "pq_sq8" else {}), **extra})
+    folders = []
+    for i in range(count):
+        folder = tmp_path / f"{prefix}{i}"
+        job(monkeypatch, tmp_path, save=str(folder), num_shards=count, shard_index=i,
+            **({"codebook": str(codebook)} if codebook else {}), **knobs)
+        folders.append(folder)
+    return folders
+
+
+def codebook_of(monkeypatch, tmp_path, name="codebook", seed=0):
+    folder = tmp_path / name
+    job(monkeypatch, tmp_path, seed=seed, save=str(folder), train_only=True, backend="faiss", kind="pq_sq8",
+        **KNOBS)
+    return folder
+
+
+@pytest.mark.parametrize("kind", ["flat", "pq_sq8"])
+def test_a_gallery_merged_from_three_shards_scores_exactly_as_the_one_job_gallery(monkeypatch, tmp_path, kind):
+    pytest.importorskip("faiss")
+    whole = tmp_path / "whole"
+    job(monkeypatch, tmp_path, save=str(whole), backend="faiss", kind=kind, **(KNOBS if kind == "pq_sq8" else {}))
+    codebook = codebook_of(monkeypatch, tmp_path) if kind == "pq_sq8" else None
+    folders = shards(monkeypatch, tmp_path, kind, codebook=codebook)
+    assert [json.loads((f / "gallery.json").read_text())["num_references"] for f in folders] == [40, 40, 40]
+    merged = tmp_path / "merged"
+    assert geoloc(["gallery", "merge", *reversed(list(map(str, folders))), f"out={merged}"]) == 0  # any order
+
+    one, joined = (open_gallery(f, META["model_fingerprint"], META["ckpt"]) for f in (whole, merged))
+    assert joined.index.kind == kind and len(joined.index) == N
+    query, _ = descriptors()
+    (s1, r1), (s2, r2) = one.index.search(query, 10), joined.index.search(query, 10)
+    torch.testing.assert_close(r2, r1, rtol=0, atol=0)
+    torch.testing.assert_close(s2, s1, rtol=0, atol=0)
+    assert joined.places.references == one.places.references
+    assert joined.places.queries == one.places.queries
+    assert joined.info["references_sha256"] == one.info["references_sha256"]
+    assert joined.info["reference_spread"] == pytest.approx(one.info["reference_spread"], rel=1e-5)
+    loaded = [job(monkeypatch, tmp_path, load=str(f)) for f in (whole, merged)]
+    spreads = [m.pop("reference_spread") for m in loaded]  # float32 (one job) vs float64 moments (merge)
+    assert loaded[0] == loaded[1] and 0 < loaded[0]["R@1"] < 1 and spreads[1] == pytest.approx(spreads[0], rel=1e-6)
+
+
+def test_the_merge_refuses_missing_doubled_and_foreign_shards(monkeypatch, tmp_path):
+    pytest.importorskip("faiss")
+    codebook = codebook_of(monkeypatch, tmp_path)
+    s0, s1, s2 = shards(monkeypatch, tmp_path, "pq_sq8", codebook=codebook)
+    out = tmp_path / "out"
+    with pytest.raises(ConfigError, match=r"shard\(s\) 1 of 3 are missing \(given: 0: .*shard0, 2: .*shard2\): "
+                                          r"encode them with .*gallery.shard_index=1"):
+        merge_shards([s0, s2], out)
+    with pytest.raises(ConfigError, match=rf"{s1} and {s1} both hold shard 1 of 3: give each shard once"):
+        merge_shards([s0, s1, s1, s2], out)
+    other = {**META, "ckpt": "/runs/b/best.pt", "model_fingerprint": "b" * 64}
+    foreign = tmp_path / "foreign"
+    with pytest.raises(ConfigError, match="other weights"):  # the codebook is bound to its weights too
+        job(monkeypatch, tmp_path, meta=other, save=str(foreign), num_shards=3, shard_index=1,
+            codebook=str(codebook), backend="faiss", kind="pq_sq8", **KNOBS)
+    for name, differs in (("weights", "model_fingerprint"), ("split", "references_sha256"),
+                          ("codebook", "codebook_sha256")):
+        folder = tmp_path / f"foreign_{name}"
+        if name == "weights":
+            cb = tmp_path / "cb_weights"
+            job(monkeypatch, tmp_path, meta=other, save=str(cb), train_only=True, backend="faiss", kind="pq_sq8",
+                **KNOBS)
+            job(monkeypatch, tmp_path, meta=other, save=str(folder), num_shards=3, shard_index=1,
+                codebook=str(cb), backend="faiss", kind="pq_sq8", **KNOBS)
+        elif name == "split":  # the same paths in another order: another reference list
+            split = pairs_split(N, tmp_path / "data")
+            split.references.reverse()
+            cb = tmp_path / "cb_split"
+            job(monkeypatch, tmp_path, split=split, save=str(cb), train_only=True, backend="faiss",
+                kind="pq_sq8", **KNOBS)
+            job(monkeypatch, tmp_path, split=split, save=str(folder), num_shards=3, shard_index=1, codebook=str(cb),
+                backend="faiss", kind="pq_sq8", **KNOBS)
+        else:  # a codebook trained again, on other descriptors
+            cb = codebook_of(monkeypatch, tmp_path, "cb_other", seed=1)
+            job(monkeypatch, tmp_path, save=str(folder), num_shards=3, shard_index=1, codebook=str(cb),
+                backend="faiss", kind="pq_sq8", **KNOBS)
+        with pytest.raises(ConfigError, match=rf"the shard in {folder} is not of the same gallery as the one in "
+                                              rf"{s0}: {differs} .*rebuild the foreign one with"):
+            merge_shards([s0, folder, s2], out)
+    assert not out.exists()
+    with pytest.raises(ConfigError, match=rf"{codebook} holds a codebook, not a shard"):
+        merge_shards([s0, s1, s2, codebook], out)
+
+
+def test_parts_are_refused_where_a_gallery_is_expected_and_shards_need_the_codebook(monkeypatch, tmp_path):
+    pytest.importorskip("faiss")
+    codebook = codebook_of(monkeypatch, tmp_path)
+    (s0, *_) = shards(monkeypatch, tmp_path, "pq_sq8", codebook=codebook)
+    for folder, what in ((s0, "shard 0 of 3"), (codebook, "the codebook")):
+        with pytest.raises(ConfigError, match=rf"{folder} holds {what} of a gallery built across jobs, not a whole "
+                                              r"gallery: join the shards first \(geoloc gallery merge"):
+            open_gallery(folder, META["model_fingerprint"], META["ckpt"])
+    with pytest.raises(ConfigError, match=r"builds pq_sq8, which trains a codebook, and each shard must be filled "
+                                          r"from the same one: build it once with gallery.train_only=true"):
+        shards(monkeypatch, tmp_path, "pq_sq8", prefix="no_codebook")
+    with pytest.raises(ConfigError, match=r"trained for another index: coarse_m 8 \(codebook\) vs 4 \(here\)"):
+        shards(monkeypatch, tmp_path, "pq_sq8", codebook=codebook, prefix="other_knobs", coarse_m=4)

@@ -1,0 +1,68 @@
+"""`torchrun --nproc_per_node=2 evaluate.py ... gallery.save=DIR` (2 CPU processes, gloo) writes the gallery one
+process writes: the same rows in the same order, the same descriptors to float tolerance, the same recall; and a
+gallery built by shard jobs through evaluate.py and merged scores as the one-job gallery."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import pytest
+import torch
+from geoloc.cli import main as geoloc
+from geoloc.eval import GalleryIndex
+from geoloc.launch import run
+
+from conftest import REPO, TINY, compose_evaluate, compose_train
+
+RECALL = ("R@1", "R@5", "R@10", "R@1%")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def evaluate(tmp_path, ckpt, name, *extra):
+    return run.evaluate(compose_evaluate([f"ckpt={ckpt}", "progress=false", "device=cpu",
+                                          f"run_dir={tmp_path / name}", *extra]))
+
+
+@pytest.mark.slow
+def test_a_torchrun_gallery_equals_the_one_process_gallery(tiny_cvusa, tmp_path):
+    run_dir = tmp_path / "run"
+    run.train(compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={run_dir}", "trainer.max_epochs=1"]))
+    ckpt = run_dir / "best.pt"
+    single = evaluate(tmp_path, ckpt, "eval1", f"gallery.save={tmp_path / 'one'}")
+    out = tmp_path / "metrics.json"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
+           f"--master_port={free_port()}", str(REPO / "evaluate.py"), f"ckpt={ckpt}", "device=cpu", "progress=false",
+           f"gallery.save={tmp_path / 'two'}", f"metrics_out={out}", f"hydra.run.dir={tmp_path / 'eval2'}"]
+    proc = subprocess.run(cmd, cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    ddp = json.loads(out.read_text())
+    for key in RECALL:
+        assert ddp[key] == single[key], key
+    one, two = (tmp_path / "one", tmp_path / "two")
+    for name in ("references.jsonl", "queries.jsonl"):
+        assert (two / name).read_bytes() == (one / name).read_bytes(), name  # the same rows in the same order
+    a, b = (GalleryIndex.load(d / "gallery.pt").vectors() for d in (one, two))
+    assert a.shape == b.shape == (8, 16)
+    torch.testing.assert_close(b, a, rtol=0, atol=1e-6)
+
+    # three shard jobs through evaluate.py, merged with `geoloc gallery merge`, score as the one-job gallery
+    shards = [tmp_path / f"shard{i}" for i in range(3)]
+    for i, folder in enumerate(shards):
+        evaluate(tmp_path, ckpt, f"eval_shard{i}", f"gallery.save={folder}", "gallery.num_shards=3",
+                 f"gallery.shard_index={i}")
+    assert [json.loads((f / "gallery.json").read_text())["num_references"] for f in shards] == [2, 3, 3]
+    assert geoloc(["gallery", "merge", *map(str, shards), f"out={tmp_path / 'merged'}"]) == 0
+    merged = evaluate(tmp_path, ckpt, "eval_merged", f"gallery.load={tmp_path / 'merged'}")
+    for key in RECALL:
+        assert merged[key] == single[key], key
+    torch.testing.assert_close(GalleryIndex.load(tmp_path / "merged" / "gallery.pt").vectors(), a, rtol=0, atol=1e-6)

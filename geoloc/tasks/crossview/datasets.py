@@ -17,7 +17,8 @@ from geoloc.data.validate import check_files
 from geoloc.engine.sampling import item_rng, split_key
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
-from geoloc.tasks.crossview.transforms import align, align_query, align_reference, load_view, to_tensor
+from geoloc.tasks.crossview.refine import RefineConfig, eval_offset, refine_item
+from geoloc.tasks.crossview.transforms import align, align_query, align_reference, load_view, resize, to_tensor
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
@@ -68,12 +69,13 @@ class CrossViewPairs(Dataset):
     item["heading"] the true heading in degrees."""
 
     def __init__(self, split: RetrievalSplit, cfg: CrossViewDataConfig, train: bool, augment_seed: int = 0,
-                 heading_search: bool = False):
+                 heading_search: bool = False, refine: RefineConfig | None = None):
         if split.aerial_queries:
             raise ValueError(f"{split.name}: pairs need ground-side queries; this split's queries are aerial images")
         self.split, self.cfg, self.train = split, cfg, train
         self.heading_search = heading_search
         self.augment_seed = augment_seed
+        self.refine = refine  # a RefineConfig: items carry the refiner's inputs and truth (refine.py)
         self.labels = split.labels()
         self._neighbours = None
 
@@ -105,9 +107,21 @@ class CrossViewPairs(Dataset):
             return {"query": candidates, "reference": to_tensor(align_reference(aerial, self.cfg)), "index": index,
                     "label": label, "heading": heading}
         rng = item_rng(self.augment_seed, key) if self.train else None
+        if self.refine is not None:
+            return self._refine_item(index, label, street, rng)
         query, reference = align(street, aerial, self.cfg, rng, self.split.query_view)
         return {"query": to_tensor(query, rng, self.cfg.color_jitter),
                 "reference": to_tensor(reference, rng, self.cfg.color_jitter), "index": index, "label": label}
+
+
+    def _refine_item(self, index: int, label: int, street: np.ndarray, rng) -> dict:
+        """The pair as the refiner sees it (refine.refine_item), with the retrieval inputs of the same view."""
+        item = refine_item(self.split, index, street, self.cfg, self.refine, rng)
+        jitter = self.cfg.color_jitter if rng is not None else 0.0
+        query = align_query(item.pop("street"), self.cfg, self.split.query_view)
+        reference = align_reference(item.pop("aerial"), self.cfg)
+        return {"query": to_tensor(query, rng, jitter), "reference": to_tensor(reference, rng, jitter),
+                "index": index, "label": label, **item}
 
 
 class ViewImages(Dataset):
@@ -115,8 +129,9 @@ class ViewImages(Dataset):
     "index": i}. `view` is "aerial" for aerial images (the reference branch's input) or the query view of the
     split's ground-side images ("panorama", "sphere", "image")."""
 
-    def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig):
+    def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig, refine: RefineConfig | None = None):
         self.paths, self.view, self.cfg = list(paths), view, cfg
+        self.refine = refine  # a RefineConfig: items carry "refine_image" (and a query's "refine_heading") too
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -130,7 +145,20 @@ class ViewImages(Dataset):
             if self.view != "image":
                 street = north_window(street, self.cfg.fov, 0.0)
             image = align_query(street, self.cfg, self.view)
-        return {"image": to_tensor(image), "index": index}
+        item = {"image": to_tensor(image), "index": index}
+        if self.refine is not None:
+            item.update(self._refine_input(index))
+        return item
+
+    def _refine_input(self, index: int) -> dict:
+        """The refiner's input: the tile at its side, or the query at its fixed test heading (refine.eval_offset)."""
+        side = self.refine.side(self.cfg.aerial_size)
+        if self.view == "aerial":
+            return {"refine_image": to_tensor(resize(read_rgb(self.paths[index]), (side, side)))}
+        offset = eval_offset(index, self.refine.orientation_noise_deg)
+        street = crop_view(load_view(self.paths[index], self.view), 360.0, offset)
+        query = align_query(street, replace(self.cfg, aerial_size=side), self.view)
+        return {"refine_image": to_tensor(query), "refine_heading": offset % 360.0}
 
 
 @dataclass
@@ -154,20 +182,26 @@ def known_heading(data: EvalData) -> EvalData:
     return replace(data, pairs=CrossViewPairs(data.split, data.pairs.cfg, train=False))
 
 
-def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0) -> CrossViewPairs:
-    """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too."""
-    return CrossViewPairs(read_split(cfg, reader, split), cfg, train=train, augment_seed=augment_seed)
+def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0,
+          refine: RefineConfig | None = None) -> CrossViewPairs:
+    """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too.
+    refine: the refiner's RefineConfig, or None (retrieval alone)."""
+    return CrossViewPairs(read_split(cfg, reader, split), cfg, train=train, augment_seed=augment_seed, refine=refine)
 
 
-def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str) -> EvalData:
+def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str, refine: RefineConfig | None = None) -> EvalData:
     """What validation and evaluation read of `split`: its pairs (one-to-one) or its queries and gallery apart."""
     data = read_split(cfg, reader, split)
+    if refine is not None and cfg.limited_view:
+        raise ConfigError("the refiner reads full panoramas: with refiner set, keep dataset.fov=360 and "
+                          "dataset.random_heading=false (refiner.orientation_noise_deg gives an unknown heading)")
     if data.one_to_one:
-        return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading))
+        return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading,
+                                                   refine=refine))
     if cfg.random_heading:
         raise ConfigError(f"dataset {cfg.name!r}: evaluation with an unknown heading (dataset.random_heading=true) "
                           "scores one-to-one splits (CVUSA, CVACT, synthetic) only; evaluate this split with "
                           "dataset.random_heading=false (a known heading, north at the centre)")
     reference_view = "image" if data.aerial_queries else "aerial"
-    return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg),
-                    references=ViewImages(data.references, reference_view, cfg))
+    return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg, refine),
+                    references=ViewImages(data.references, reference_view, cfg, refine))

@@ -28,6 +28,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
+from geoloc.tasks.crossview.refine import offset_m
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
 from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
 from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov, view_canvas
@@ -167,9 +168,7 @@ class CrossViewEncoder:
         references = self.refiner.encode_reference(tiles.to(self.device))
         candidates = self.refine_config.candidates(getattr(self.refiner, "heading_bins", 36))
         out = self.refiner.match(maps.expand(len(references), *maps.shape[1:]), references, candidates)
-        fraction = out.position().cpu().double().numpy()
-        east_north = np.column_stack([(fraction[:, 1] - 0.5) * extent[:, 1].numpy(),
-                                      (0.5 - fraction[:, 0]) * extent[:, 0].numpy()])
+        east_north = offset_m(out.position().cpu().double().numpy(), np.asarray(extent_m, np.float64).reshape(-1, 2))
         turn = out.heading().cpu().numpy() if self.refine_config.orientation_noise_deg > 0 else np.zeros(len(tiles))
         return {"offset_m": east_north, "heading_offset_deg": turn,
                 "mass": out.mass_within(radius_m, extent.to(self.device)).cpu().numpy(),

@@ -145,3 +145,14 @@ def test_a_bad_refiner_checkpoint_is_refused_with_the_keys(tmp_path):
     wider = task_of(compose_train([*BASE, "refiner=correlation", "refiner.channels=8"]))
     with pytest.raises(ConfigError, match=r"mis-shaped.*refiner\."):
         with_weights(refining, {"task": wider.state_dict(), "config": "{}"}, tmp_path / "wider.pt")
+
+
+@pytest.mark.slow
+def test_one_to_one_data_has_only_the_heading_to_find(tiny_cvusa, tmp_path):
+    """CVUSA-layout pairs: the camera at the tile centre, the heading unknown; joint training from scratch."""
+    best = run.train(compose_train([*BASE, f"dataset.root={tiny_cvusa}", "refiner=correlation", "refiner.channels=4",
+                                    "refiner.width=4", "refiner.heading_bins=8", "refiner.stage=joint",
+                                    "refiner.orientation_noise_deg=180", "trainer.max_epochs=1",
+                                    f"run_dir={tmp_path / 'run'}"]))
+    assert {"fine_heading_mean_deg", "fine_heading_median_deg", "R@1"} <= set(best)
+    assert not any(key.startswith("e2e_") for key in best)  # one-to-one: no retrieved tile to refine in

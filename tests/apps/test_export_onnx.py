@@ -199,3 +199,22 @@ def test_a_file_written_at_another_opset_is_refused(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match=r"query.onnx: torch.onnx wrote opset 18, not the opset=21 asked for"):
         export(compose_export([f"ckpt={tmp_path / 'best.pt'}", "opset=21", f"out={tmp_path / 'onnx'}"]))
     assert not (tmp_path / "onnx").exists()
+
+
+@pytest.mark.slow
+def test_the_refiner_encoders_are_exported_and_match_torch(tmp_path):
+    """A checkpoint with a refiner adds its two encoders (refine_query.onnx, refine_reference.onnx), which give
+    torch's feature maps at two batch sizes, and describes the matching in encoders.json."""
+    task = write_checkpoint(tmp_path / "best.pt", ["refiner=correlation", "refiner.channels=4", "refiner.width=4"]
+                            ).eval()
+    spec = export(compose_export([f"ckpt={tmp_path / 'best.pt'}"]))
+    entry = spec["refiner"]
+    assert entry["name"] == "correlation" and entry["side"] == 32 and "matching" in entry
+    for side, encode in (("query", task.refiner.encode_query), ("reference", task.refiner.encode_reference)):
+        session = ort.InferenceSession(str(tmp_path / "best_onnx" / entry[side]["file"]),
+                                       providers=["CPUExecutionProvider"])
+        for batch in (1, 3):
+            got, expected = run_both(encode, session, (3, 32, 32), batch)
+            assert got.shape == (batch, 4, 16, 16)
+            assert np.abs(got - expected).max() < 1e-4
+        assert entry[side]["checked_against_torch"]["max_abs_diff"] < 1e-4

@@ -5,6 +5,12 @@ preprocessing of the query view the checkpoint records).
 out/query.onnx       the query (ground-view) branch: B×3×Hq×Wq -> B×dim, L2-normalised
 out/reference.onnx   the reference (aerial) branch:  B×3×Hr×Wr -> B×dim, L2-normalised
 out/encoders.json    input names and shapes, preprocessing, output dim, opset, the torch-vs-onnxruntime check
+
+A checkpoint with a refiner (docs/localisation.md) adds its two encoders, whose maps the refiner correlates:
+out/refine_query.onnx      the aligned query at the refiner's side: B×3×s×s -> B×C×n×n feature maps
+out/refine_reference.onnx  a tile at the refiner's side:             B×3×s×s -> B×C×n×n feature maps
+The correlation itself (an FFT over complex numbers, which torch.onnx does not export) is written out in
+encoders.json's "refiner" entry; it is geoloc.models.refiners.correlation.correlate.
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ from geoloc.tasks.crossview import CrossViewEncoder
 
 FORMATS = ("onnx",)
 FILES = {"query": "query.onnx", "reference": "reference.onnx"}
+REFINER_FILES = {"query": "refine_query.onnx", "reference": "refine_reference.onnx"}
+MAP_NAME = "feature_map"
 SPEC_FILE = "encoders.json"
 INPUT_NAME, OUTPUT_NAME = "image", "descriptor"
 # a protobuf file holds at most 2 GB: a branch with more weights than this keeps them in `<file>.data` beside it
@@ -83,6 +91,8 @@ def export_encoders(encoder: CrossViewEncoder, out: Path, query_view: str | None
             entry = branch_entry(FILES[name], described, hw, geometry, model_dim(branch, example))
             entry["checked_against_torch"] = checked(branch, tmp / FILES[name], example)
             spec[name] = entry
+        if encoder.refiner is not None:
+            spec["refiner"] = export_refiner(encoder, tmp, opset)
         for path in tmp.iterdir():
             os.replace(path, out / path.name)
     except BaseException:
@@ -103,6 +113,38 @@ def export_encoders(encoder: CrossViewEncoder, out: Path, query_view: str | None
                       "product of the descriptors. For aerial queries (University-1652 satellite -> drone) the "
                       "queries go through reference.onnx and the drone gallery through query.onnx."),
             "normalisation": inputs["normalisation"], **spec}
+
+
+class _Encode(torch.nn.Module):
+    """One of a refiner's encode_query / encode_reference as a module to export."""
+
+    def __init__(self, refiner: torch.nn.Module, side: str):
+        super().__init__()
+        self.refiner, self.side = refiner, side
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return getattr(self.refiner, f"encode_{self.side}")(images)
+
+
+def export_refiner(encoder: CrossViewEncoder, tmp: Path, opset: int | None) -> dict:
+    """The refiner's two encoders into `tmp` (REFINER_FILES), each checked against torch; their spec entry."""
+    side = encoder.refine_config.side(encoder.data.aerial_size)
+    entry = {"name": encoder.config.refiner.get("name"), "side": side,
+             "orientation_noise_deg": encoder.refine_config.orientation_noise_deg,
+             "heading_bins": getattr(encoder.refiner, "heading_bins", None),
+             "matching": ("log P(heading k, position) = log_softmax over (k, position) of scale x the mean dot product "
+                          "of the query map's central window, turned clockwise by heading k, with the tile map, "
+                          "the window's centre on each cell corner of the tile map; geoloc.models.refiners."
+                          "correlation.correlate, and Refinement (refinement.py) for the estimates read from it"),
+             "scale": float(encoder.refiner.log_scale.detach().exp()) if hasattr(encoder.refiner, "log_scale") else None}
+    for name, file in REFINER_FILES.items():
+        module = _Encode(encoder.refiner, name).eval()
+        example = torch.randn(2, 3, side, side, generator=torch.Generator().manual_seed(1))
+        export_branch(module, example, tmp / file, opset, output_name=MAP_NAME)
+        entry[name] = {"file": file, "input": {"name": INPUT_NAME, "shape": ["batch", 3, side, side]},
+                       "preprocessing": "as the branch of the same view, at side x side",
+                       "checked_against_torch": checked(module, tmp / file, example, output_name=MAP_NAME)}
+    return entry
 
 
 def queries_entry(encoder: CrossViewEncoder, ground_view: str) -> dict:
@@ -135,7 +177,8 @@ def branch_entry(file: str, view: str, hw: tuple[int, int], geometry: list[str],
     }
 
 
-def export_branch(branch: torch.nn.Module, example: torch.Tensor, path: Path, opset: int | None) -> int:
+def export_branch(branch: torch.nn.Module, example: torch.Tensor, path: Path, opset: int | None,
+                  output_name: str = OUTPUT_NAME) -> int:
     """One branch to `path`, batch dimension dynamic, H and W fixed to the example's; returns the opset written.
 
     Exporter: torch.export (dynamo=True) with a dynamic batch Dim. The TorchScript exporter (dynamo=False) refuses
@@ -145,7 +188,7 @@ def export_branch(branch: torch.nn.Module, example: torch.Tensor, path: Path, op
     lowered for the example's sizes only and gives wrong descriptors at others."""
     big = sum(t.numel() * t.element_size() for t in [*branch.parameters(), *branch.buffers()]) > SINGLE_FILE_BYTES
     # an example batch of 2: a batch of 1 would be specialised as a constant
-    program = torch.onnx.export(branch, (example,), str(path), input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
+    program = torch.onnx.export(branch, (example,), str(path), input_names=[INPUT_NAME], output_names=[output_name],
                                 dynamo=True, dynamic_shapes=({0: torch.export.Dim("batch", min=1)},),
                                 opset_version=opset, external_data=big, verbose=False)
     return int(program.model.opset_imports[""])
@@ -189,7 +232,7 @@ def model_dim(branch: torch.nn.Module, example: torch.Tensor) -> int:
         return int(branch(example[:1]).shape[1])
 
 
-def checked(branch: torch.nn.Module, path: Path, example: torch.Tensor) -> dict | None:
+def checked(branch: torch.nn.Module, path: Path, example: torch.Tensor, output_name: str = OUTPUT_NAME) -> dict | None:
     """onnxruntime's descriptors of `example` against torch's (max abs difference); None without onnxruntime."""
     if importlib.util.find_spec("onnxruntime") is None:
         return None
@@ -198,7 +241,7 @@ def checked(branch: torch.nn.Module, path: Path, example: torch.Tensor) -> dict 
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     with torch.no_grad():
         expected = branch(example).numpy()
-    got = session.run([OUTPUT_NAME], {INPUT_NAME: example.numpy()})[0]
+    got = session.run([output_name], {INPUT_NAME: example.numpy()})[0]
     diff = float(np.abs(got - expected).max())
     if not diff <= CHECK_TOLERANCE:
         raise RuntimeError(f"{path.name}: onnxruntime's descriptors differ from torch's by {diff:.3g} (max abs) on "
@@ -213,7 +256,8 @@ def default_out(ckpt: Path) -> Path:
 
 
 def refuse_existing(out: Path) -> None:
-    names = [*FILES.values(), *(f + ".data" for f in FILES.values()), SPEC_FILE]
+    files = [*FILES.values(), *REFINER_FILES.values()]
+    names = [*files, *(f + ".data" for f in files), SPEC_FILE]
     taken = [name for name in names if (out / name).exists()]
     if taken:
         raise ConfigError(f"out={out} already holds {', '.join(taken)}; nothing was exported. Choose another "

@@ -20,11 +20,12 @@ from geoloc.apps.query import (QueryError, QueryLimits, QuerySettings, check_hea
                                         check_size, image_size)
 from geoloc.config import ConfigError
 from geoloc.data.validate import decode_rgb
-from geoloc.data.geo import distance_m
+from geoloc.data.geo import distance_m, offset_to_latlon
+from geoloc.data.io import read_rgb
 from geoloc.data.relevance import Relevance
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview import CrossViewEncoder, LocalizationResult, open_gallery
+from geoloc.tasks.crossview import POSITION_KEYS, CrossViewEncoder, LocalizationResult, open_gallery
 
 CANDIDATES_PER_PASS = 12  # candidate headings encoded per forward pass: bounds the activations of a heading search
 
@@ -94,11 +95,43 @@ class Localizer:
         # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
         scores, rows = self.index.search(descriptors, min(len(self.index), query.topk))
         best = self._merge(scores, rows, headings)[: query.topk]
-        return LocalizationResult(image=name or (str(path) if path else None), fov_deg=query.fov,
-                                  heading_deg=best[0]["heading_deg"],
-                                  heading_source="search" if query.heading is None else "given",
-                                  position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,
-                                  truth=self._truth(path, best))
+        answer = LocalizationResult(image=name or (str(path) if path else None), fov_deg=query.fov,
+                                    heading_deg=best[0]["heading_deg"],
+                                    heading_source="search" if query.heading is None else "given",
+                                    position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,
+                                    truth=self._truth(path, best))
+        if self.refines(query.fov):
+            self._refine(answer, image)
+        return answer
+
+    def refines(self, fov: float) -> bool:
+        """Whether answers are refined inside the tiles: the checkpoint has a refiner, the gallery knows its tiles'
+        positions and extent, and the image is a 360° panorama (the refiner reads full panoramas)."""
+        return (self.encoder.refiner is not None and fov == 360.0 and self.places.kind is not None
+                and self.places.reference_extent_m is not None)
+
+    def _refine(self, answer: LocalizationResult, image: np.ndarray) -> None:
+        """Each top-k tile's refined position and heading (the top-1's is the answer's refined_position, with its
+        probability map); left out when a tile's image cannot be read."""
+        tiles = [_tile(self.places.root, hit["path"]) for hit in answer.topk]
+        if any(tile is None for tile in tiles):
+            return
+        query, inputs = self.encoder.refine_inputs(image, answer.heading_deg, tiles, view=self.view)
+        rows = [hit["row"] for hit in answer.topk]
+        out = self.encoder.refine(query, inputs, self.places.reference_extent_m[rows])
+        for i, hit in enumerate(answer.topk):
+            centre = self.places.reference_positions[hit["row"]]
+            east, north = out["offset_m"][i]
+            where = offset_to_latlon(centre, east, north) if self.places.kind == "latlon" else centre + [east, north]
+            hit["refined_position"] = {**dict(zip(POSITION_KEYS[self.places.kind], map(float, where))),
+                                       "heading_deg": float((hit["heading_deg"] + out["heading_offset_deg"][i]) % 360),
+                                       "mass_5m": float(out["mass"][i])}
+        answer.refined_position = dict(answer.topk[0]["refined_position"])
+        answer.probability_map = out["maps"][0]
+        if answer.truth is not None and "position" in answer.truth:
+            where = np.array([answer.refined_position[k] for k in POSITION_KEYS[self.places.kind]])
+            truth = self.places.position_of(answer.truth["position"])
+            answer.truth["refined_error_m"] = float(distance_m(truth, where, self.places.kind))
 
     def _encode(self, inputs: torch.Tensor, deadline: float | None) -> torch.Tensor:
         """The descriptors of a few candidate inputs, unless `deadline` has passed (QueryError 503)."""
@@ -142,6 +175,14 @@ class Localizer:
             top1 = self.places.reference_positions[best[0]["row"]]
             truth["error_m"] = float(distance_m(where, top1, self.places.kind))
         return truth
+
+
+def _tile(root: Path, path: str) -> np.ndarray | None:
+    """A gallery tile's image, or None when it is not there (a gallery moved away from its images)."""
+    try:
+        return read_rgb(Path(root) / path)
+    except (OSError, ValueError):
+        return None
 
 
 def read_street(path: Path, check=None) -> np.ndarray:

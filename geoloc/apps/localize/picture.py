@@ -1,5 +1,8 @@
 """The picture of one localisation: the query, its top-k tiles, and a map of the candidates.
 
+When the answer is refined inside the tile, the top-1 tile carries the refiner's probability map, the refined
+position (a dot) and its heading (an arrow, clockwise from north = up).
+
 Tiles are framed green when they are the query's true reference (known when the image is one of the gallery
 split's queries), red otherwise. The map shows the neighbourhood of the true position (of the top-1 when it is
 unknown) in metres: the gallery's references there (grey), the top-k that fall in it (numbered, the top-1 largest)
@@ -16,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from geoloc.data.io import read_rgb  # noqa: E402
+from geoloc.apps.localize.localizer import _tile  # noqa: E402
 from geoloc.data.geo import latlon_to_offset  # noqa: E402
 from geoloc.tasks.crossview import POSITION_KEYS, LocalizationResult  # noqa: E402
 
@@ -25,11 +28,20 @@ NEIGHBOURHOOD_M = 5_000.0  # the map shows candidates this close to its centre
 MIN_RADIUS_M = 150.0
 
 
-def _tile(root: Path, path: str) -> np.ndarray | None:
-    try:
-        return read_rgb(root / path)
-    except (OSError, ValueError):  # a gallery moved away from its images still localizes; the tile is left blank
-        return None
+def _refined(ax, answer: LocalizationResult, hit: dict, tile: np.ndarray, extent: np.ndarray) -> None:
+    """On the top-1 tile: the refiner's probability map, its position (a dot) and heading (an arrow)."""
+    height, width = tile.shape[:2]
+    prob = answer.probability_map
+    ax.imshow(prob / max(float(prob.max()), 1e-12), extent=(0, width, height, 0), cmap="magma", alpha=0.5,
+              interpolation="bilinear")
+    refined, places_kind = hit["refined_position"], answer.positions
+    east, north = _metres(places_kind, _array(places_kind, hit), _array(places_kind, refined))
+    col, row = width / 2 + east / extent[1] * width, height / 2 - north / extent[0] * height
+    angle = np.radians(refined["heading_deg"])
+    length = 0.15 * width
+    ax.scatter([col], [row], s=40, c="cyan", edgecolors="k", zorder=3)
+    ax.annotate("", xy=(col + length * np.sin(angle), row - length * np.cos(angle)), xytext=(col, row),
+                arrowprops=dict(arrowstyle="->", color="cyan", lw=2))
 
 
 def _array(kind: str, where: dict) -> np.ndarray:
@@ -96,6 +108,8 @@ def localization_figure(answer: LocalizationResult, image: np.ndarray, places, o
         tile = _tile(places.root, hit["path"])
         if tile is not None:
             ax.imshow(tile)
+            if i == 0 and answer.probability_map is not None and "refined_position" in hit:
+                _refined(ax, answer, hit, tile, places.reference_extent_m[hit["row"]])
         colour = "green" if hit["row"] == truth.get("row") else "red" if truth else "grey"
         for side in ax.spines.values():
             side.set_edgecolor(colour)

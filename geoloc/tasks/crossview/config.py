@@ -21,6 +21,7 @@ from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
 from geoloc.tasks.crossview.gallery import GalleryConfig
+from geoloc.tasks.crossview.refine import RefineConfig, parse_refiner, refine_nodes
 
 #: the registered kinds a cross-view network and its training are built from (registry.section: their sections)
 COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler", "query_views")
@@ -46,6 +47,7 @@ def config_nodes() -> dict[str, dict]:
     shared = defaults_of(CrossViewDataConfig)
     nodes.update({f"dataset/{name}": {**shared, **registry.with_defaults("dataset", {"name": name})}
                   for name in registry.names("dataset")})
+    nodes.update(refine_nodes())
     return {**nodes, "model": defaults_of(CrossViewModelConfig), "gallery": defaults_of(GalleryConfig)}
 
 
@@ -59,6 +61,8 @@ class Components:
     optim: dict
     sampler: dict = field(default_factory=lambda: {"name": "shuffle"})
     views: dict = field(default_factory=lambda: {"name": "single"})  # the query views of a training pair
+    refiner: dict | None = None  # the refiner's own keys (refine.py), or None: retrieval alone
+    refine: RefineConfig | None = None  # how the refiner trains and is tested
 
     def section(self, kind: str) -> dict:
         return getattr(self, registry.section(kind))
@@ -116,7 +120,8 @@ def parse_components(cfg: DictConfig) -> Components:
         if not sections[section]:
             raise ConfigError(f"config section '{section}' is missing; choose one with {section}=<option>")
         registry.check(kind, sections[section])
-    return Components(**sections)
+    refine, refiner = parse_refiner(_plain(cfg.get("refiner")))
+    return Components(**sections, refiner=refiner, refine=refine)
 
 
 def parse_training(cfg: DictConfig) -> CrossViewTraining:
@@ -174,4 +179,6 @@ def canonical_config(cfg: DictConfig) -> dict:
         **{registry.section(kind): registry.with_defaults(kind, run.components.section(kind)) for kind in COMPONENTS},
         "trainer": asdict(run.trainer),
         **asdict(run.job),
+        **({"refiner": {**asdict(run.components.refine), **registry.with_defaults("refiner", run.components.refiner)}}
+           if run.components.refiner else {}),
     }

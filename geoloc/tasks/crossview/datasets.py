@@ -19,7 +19,9 @@ from geoloc.engine.sampling import item_rng, split_key
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
 import geoloc.tasks.crossview.view_pairs  # noqa: F401  (the query_views kind that build() builds)
-from geoloc.tasks.crossview.transforms import align, align_query, align_reference, augment, load_view, to_tensor
+from geoloc.tasks.crossview.refine import RefineConfig, eval_offset, refine_item
+from geoloc.tasks.crossview.transforms import (align, align_query, align_reference, augment, load_view, resize,
+                                                to_tensor)
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
@@ -74,13 +76,14 @@ class CrossViewPairs(Dataset):
     item["query_views"]: V×3×Hq×Wq. None: one query, as the dataset config says."""
 
     def __init__(self, split: RetrievalSplit, cfg: CrossViewDataConfig, train: bool, augment_seed: int = 0,
-                 heading_search: bool = False, views=None):
+                 heading_search: bool = False, views=None, refine: RefineConfig | None = None):
         if split.aerial_queries:
             raise ValueError(f"{split.name}: pairs need ground-side queries; this split's queries are aerial images")
         self.split, self.cfg, self.train = split, cfg, train
         self.heading_search = heading_search
         self.augment_seed = augment_seed
         self.views = views if train else None
+        self.refine = refine  # a RefineConfig: items carry the refiner's inputs and truth (refine.py)
         self.labels = split.labels()
         self._neighbours = None
 
@@ -114,10 +117,11 @@ class CrossViewPairs(Dataset):
         rng = item_rng(self.augment_seed, key) if self.train else None
         if self.views is not None:
             return self._with_views(street, aerial, rng, index, label)
+        if self.refine is not None:
+            return self._refine_item(index, label, street, rng)
         query, reference = align(street, aerial, self.cfg, rng, self.split.query_view)
         return {"query": to_tensor(query, rng, self.cfg.color_jitter),
                 "reference": to_tensor(reference, rng, self.cfg.color_jitter), "index": index, "label": label}
-
 
     def _with_views(self, street, aerial, rng, index: int, label: int) -> dict:
         street, aerial = augment(street, aerial, self.cfg, rng)
@@ -127,6 +131,15 @@ class CrossViewPairs(Dataset):
                 "reference": to_tensor(align_reference(aerial, self.cfg), rng, jitter), "index": index,
                 "label": label,
                 "query_views": torch.stack([to_tensor(align_query(v, self.cfg, view), rng, jitter) for v in extras])}
+
+    def _refine_item(self, index: int, label: int, street: np.ndarray, rng) -> dict:
+        """The pair as the refiner sees it (refine.refine_item), with the retrieval inputs of the same view."""
+        item = refine_item(self.split, index, street, self.cfg, self.refine, rng)
+        jitter = self.cfg.color_jitter if rng is not None else 0.0
+        query = align_query(item.pop("street"), self.cfg, self.split.query_view)
+        reference = align_reference(item.pop("aerial"), self.cfg)
+        return {"query": to_tensor(query, rng, jitter), "reference": to_tensor(reference, rng, jitter),
+                "index": index, "label": label, **item}
 
 
 class ViewImages(Dataset):
@@ -138,9 +151,11 @@ class ViewImages(Dataset):
     eval_heading(i) with dataset.fov, item["image"] is its K×3×H×W candidate inputs and item["heading"] the true
     heading in degrees, as CrossViewPairs gives them."""
 
-    def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig, heading_search: bool = False):
+    def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig, heading_search: bool = False,
+                 refine: RefineConfig | None = None):
         self.paths, self.view, self.cfg = list(paths), view, cfg
         self.heading_search = heading_search
+        self.refine = refine  # a RefineConfig: items carry "refine_image" (and a query's "refine_heading") too
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -159,7 +174,20 @@ class ViewImages(Dataset):
             if self.view != "image":
                 street = north_window(street, self.cfg.fov, 0.0)
             image = align_query(street, self.cfg, self.view)
-        return {"image": to_tensor(image), "index": index}
+        item = {"image": to_tensor(image), "index": index}
+        if self.refine is not None:
+            item.update(self._refine_input(index))
+        return item
+
+    def _refine_input(self, index: int) -> dict:
+        """The refiner's input: the tile at its side, or the query at its fixed test heading (refine.eval_offset)."""
+        side = self.refine.side(self.cfg.aerial_size)
+        if self.view == "aerial":
+            return {"refine_image": to_tensor(resize(read_rgb(self.paths[index]), (side, side)))}
+        offset = eval_offset(index, self.refine.orientation_noise_deg)
+        street = crop_view(load_view(self.paths[index], self.view), 360.0, offset)
+        query = align_query(street, replace(self.cfg, aerial_size=side), self.view)
+        return {"refine_image": to_tensor(query), "refine_heading": offset % 360.0}
 
 
 @dataclass
@@ -186,29 +214,39 @@ def known_heading(data: EvalData) -> EvalData:
 
 
 def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augment_seed: int = 0,
-          views: dict | None = None) -> CrossViewPairs:
+          views: dict | None = None, refine: RefineConfig | None = None) -> CrossViewPairs:
     """Training pairs of `split`. `augment_seed`: the run's `seed`, so a seed sweep varies the augmentation too.
-    `views`: the query_views section (view_pairs.py; None or `single`: one query view)."""
+    `views`: the query_views section (view_pairs.py; None or `single`: one query view). refine: the refiner's
+    RefineConfig, or None (retrieval alone)."""
     data = read_split(cfg, reader, split)
     pairing = None if views is None else registry.build("query_views", views)
     if pairing is not None and data.query_view not in ("panorama", "sphere"):
         raise ConfigError(f"views.name={views.get('name')!r} places panorama windows at bearings; dataset "
                           f"{cfg.name!r} has {data.query_view!r} queries: use views=single")
-    return CrossViewPairs(data, cfg, train=train, augment_seed=augment_seed, views=pairing)
+    if pairing is not None and refine is not None:
+        raise ConfigError(f"views.name={views.get('name')!r} adds query views for a retrieval loss, and the refiner "
+                          "trains on the full panorama: train the refiner with views=single")
+    return CrossViewPairs(data, cfg, train=train, augment_seed=augment_seed, views=pairing, refine=refine)
 
 
-def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str) -> EvalData:
+def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str, refine: RefineConfig | None = None) -> EvalData:
     """What validation and evaluation read of `split`: its pairs (one-to-one) or its queries and gallery apart."""
-    return eval_sets(cfg, read_split(cfg, reader, split))
+    data = read_split(cfg, reader, split)
+    if refine is not None and cfg.limited_view:
+        raise ConfigError("the refiner reads full panoramas: with refiner set, keep dataset.fov=360 and "
+                          "dataset.random_heading=false (refiner.orientation_noise_deg gives an unknown heading)")
+    return eval_sets(cfg, data, refine)
 
 
-def eval_sets(cfg: CrossViewDataConfig, data: RetrievalSplit) -> EvalData:
+def eval_sets(cfg: CrossViewDataConfig, data: RetrievalSplit, refine: RefineConfig | None = None) -> EvalData:
     """The EvalData of a split already read (build_eval; a gallery padded with distractors: `padded`)."""
     if data.one_to_one:
-        return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading))
+        return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading,
+                                                   refine=refine))
     reference_view = "image" if data.aerial_queries else "aerial"
-    return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg, heading_search=cfg.random_heading),
-                    references=ViewImages(data.references, reference_view, cfg))
+    return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg, heading_search=cfg.random_heading,
+                                             refine=refine),
+                    references=ViewImages(data.references, reference_view, cfg, refine=refine))
 
 
 def padded(split: RetrievalSplit, distractors: list[Path]) -> RetrievalSplit:

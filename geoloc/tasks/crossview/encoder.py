@@ -28,9 +28,10 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
+from geoloc.tasks.crossview.refine import offset_m
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
-from geoloc.tasks.crossview.transforms import align_reference, horizon_band, to_tensor
-from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov
+from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
+from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov, view_canvas
 
 
 class CrossViewEncoder:
@@ -39,6 +40,9 @@ class CrossViewEncoder:
 
     def __init__(self, task, config: DictConfig, state: dict, source, device: torch.device):
         self.model = task.model.to(device).eval()
+        # the checkpoint's refiner (fine-grained localisation inside a tile) and its RefineConfig, or None
+        self.refiner = None if task.refiner is None else task.refiner.to(device).eval()
+        self.refine_config = task.refine
         self.config, (self.data, self._reader) = config, parse_dataset(config.dataset)
         self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
         self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
@@ -136,6 +140,39 @@ class CrossViewEncoder:
     def encode_aerial(self, inputs: torch.Tensor) -> torch.Tensor:
         """B×3×H×W reference-branch inputs -> B×dim float32 descriptors on the encoder's device."""
         return self.model.reference(inputs.to(self.device)).float()
+
+    # ---- refinement inside a tile ------------------------------------------------------------------------------
+    def refine_inputs(self, image: np.ndarray, heading: float, tiles: list[np.ndarray],
+                      view: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """A 360° street image of bearing `heading` and T aerial tiles (H×W×3 uint8) -> the refiner's inputs on the
+        CPU: (1×3×s×s query, north up: the image turned back by its heading; T×3×s×s tiles)."""
+        from dataclasses import replace
+
+        view = self.query_view if view is None else view
+        side = self.refine_config.side(self.data.aerial_size)
+        north_up = view_canvas(self._street(image, 360.0, view), 360.0, heading)
+        query = to_tensor(align_query(north_up, replace(self.data, aerial_size=side), view))[None]
+        return query, torch.stack([to_tensor(resize(tile, (side, side))) for tile in tiles])
+
+    @torch.no_grad()
+    def refine(self, query: torch.Tensor, tiles: torch.Tensor, extent_m: np.ndarray, radius_m: float = 5.0) -> dict:
+        """The refiner's answer for one query (refine_inputs) in each of T tiles covering extent_m (T×2 metres,
+        height and width): {"offset_m": T×2 (east, north) metres from each tile's centre, "heading_offset_deg": (T,)
+        degrees to add to the query's heading (0 when the refiner was trained with a known heading), "mass": (T,)
+        the probability within radius_m of each position (the refiner's own score), "maps": T×R×C the
+        probability of each position (a lattice over the tile, edges included)}."""
+        if self.refiner is None:
+            raise ConfigError(f"{self.source} has no refiner: train one (docs/localisation.md)")
+        extent = torch.as_tensor(np.asarray(extent_m, np.float64), dtype=torch.float32).reshape(-1, 2)
+        maps = self.refiner.encode_query(query.to(self.device))
+        references = self.refiner.encode_reference(tiles.to(self.device))
+        candidates = self.refine_config.candidates(getattr(self.refiner, "heading_bins", 36))
+        out = self.refiner.match(maps.expand(len(references), *maps.shape[1:]), references, candidates)
+        east_north = offset_m(out.position().cpu().double().numpy(), np.asarray(extent_m, np.float64).reshape(-1, 2))
+        turn = out.heading().cpu().numpy() if self.refine_config.orientation_noise_deg > 0 else np.zeros(len(tiles))
+        return {"offset_m": east_north, "heading_offset_deg": turn,
+                "mass": out.mass_within(radius_m, extent.to(self.device)).cpu().numpy(),
+                "maps": out.position_log_prob.exp().cpu().numpy()}
 
     # ---- export ------------------------------------------------------------------------------------------------
     @property

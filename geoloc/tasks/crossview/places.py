@@ -2,7 +2,9 @@
 
 Written by `gallery.save=DIR` next to the index, read by localize.py and `geoloc serve`:
 - DIR/references.jsonl: one line per gallery row: {"path": file under the dataset root, then "lat", "lon"
-  (degrees) or "x_m", "y_m" (metres, e.g. CVACT's UTM) where the dataset has positions};
+  (degrees) or "x_m", "y_m" (metres, e.g. CVACT's UTM) where the dataset has positions, and "extent_m": the
+  [height, width] metres the tile covers where the dataset knows its scale (VIGOR, the synthetic layouts), which
+  a refiner's answer inside the tile is measured by};
 - DIR/queries.jsonl: one line per query of the split: {"path", its position, "positive": its true gallery row,
   "semi_positives": [rows]}, so a query image of the split is localized with its true position and metre error.
 Paths are relative to the dataset root stored in gallery.json ("root", absolute, so a gallery built with a relative
@@ -55,8 +57,10 @@ def write_places(folder: Path, split: RetrievalSplit, rows=None) -> dict:
     """Write references.jsonl (of the references `rows`, default all: a gallery built in parts holds some) and
     queries.jsonl; returns the keys gallery.json records about them."""
     kind, query_pos, reference_pos = split.positions()
+    extent = split.reference_extent_m
     refs = [json.dumps({"path": _rel(split.references[i], split.root),
-                        **_position(kind, None if reference_pos is None else reference_pos[i])})
+                        **_position(kind, None if reference_pos is None else reference_pos[i]),
+                        **({} if extent is None else {"extent_m": [float(v) for v in extent[i]]})})
             for i in (range(split.num_references) if rows is None else rows)]
     queries = []
     for i, p in enumerate(split.queries):
@@ -79,6 +83,7 @@ class Places:
     references: list[str]
     reference_positions: np.ndarray | None  # (N, 2)
     queries: dict[str, dict]  # query path (relative to root) -> its line
+    reference_extent_m: np.ndarray | None = None  # (N, 2) metres (height, width) each tile covers, where known
 
     def reference(self, row: int) -> dict:
         """{"row", "path", position keys} of gallery row `row`."""
@@ -128,7 +133,10 @@ def read_places(folder: Path, info: dict) -> Places:
     queries = {}
     for q in _json_lines(folder / "queries.jsonl", lambda line: _check_query(line, rows)):
         queries[q["path"]] = q
-    return Places(Path(info["root"]), kind, [r["path"] for r in refs], positions, queries)
+    extent = None
+    if refs and all("extent_m" in r for r in refs):
+        extent = np.array([r["extent_m"] for r in refs], np.float64)
+    return Places(Path(info["root"]), kind, [r["path"] for r in refs], positions, queries, extent)
 
 
 def _json_lines(path: Path, check) -> list[dict]:
@@ -161,6 +169,9 @@ def _check_reference(line: dict, position_keys: tuple) -> str:
     if not isinstance(line.get("path"), str):
         return "no \"path\" (a string)"
     bad = [k for k in position_keys if not _finite(line.get(k))]
+    extent = line.get("extent_m", [1.0, 1.0])
+    if not (isinstance(extent, list) and len(extent) == 2 and all(_finite(v) and v > 0 for v in extent)):
+        return f"\"extent_m\" must be [height, width] metres > 0, got {extent!r}"
     return f"no finite {', '.join(bad)}" if bad else ""
 
 

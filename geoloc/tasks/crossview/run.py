@@ -20,14 +20,16 @@ from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgrad
 from geoloc.tasks.crossview.task import CrossViewTask
 
 # what an init_from= run does not take from its source: the loss's state (the GMS queue holds the source data's
-# places and descriptors; a learned temperature starts again)
-INIT_FROM_FRESH = ("loss.",)
+# places and descriptors; a learned temperature starts again) and the refiner (a refinement stage starts it afresh
+# from a retrieval checkpoint)
+INIT_FROM_FRESH = ("loss.", "refiner.")
 
 
 def build_task(model: CrossViewModelConfig, components: Components, max_epochs: int) -> CrossViewTask:
     """Every component from its config section; a bad name or argument fails here, before any data is read."""
     return CrossViewTask(model, components.backbone, components.head, components.loss, components.optim,
-                         components.sampler, max_epochs=max_epochs)
+                         components.sampler, max_epochs=max_epochs, refiner=components.refiner,
+                         refine=components.refine)
 
 
 def train(cfg: DictConfig, run_dir: Path) -> dict:
@@ -41,9 +43,10 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
     source = None
     if run.job.init_from:
         source = ckpt_io.init_from(task, run.job.init_from, fresh=INIT_FROM_FRESH)
+    refine = run.components.refine
     train_set = build(run.data, run.reader, "train", train=True, augment_seed=run.trainer.seed,
-                      views=run.components.views)
-    val_set = build_eval(run.data, run.reader, run.data.val_split)
+                      views=run.components.views, refine=refine)
+    val_set = build_eval(run.data, run.reader, run.data.val_split, refine=refine)
     task.validate_on(val_set.split)
     trainer = Trainer(run.trainer, run_dir, run.yaml)
     if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
@@ -79,7 +82,7 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
     if run.gallery.save and dist.is_main():  # before the data is read: a taken folder costs nothing
         check_target(run.gallery.save, run.gallery.overwrite)
     if eval_data is None:
-        eval_data = build_eval(run.data, run.reader, run.data.split)
+        eval_data = build_eval(run.data, run.reader, run.data.split, refine=run.components.refine)
     task.validate_on(eval_data.split)
     trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress),
                       run_dir=run.run_dir or ".")
@@ -136,6 +139,7 @@ def print_table(metrics: dict, title: str) -> None:
 
 
 def _fmt(key: str, value: float) -> str:
-    if key.startswith("R@") or key in ("hit_rate", "AP") or key.startswith(("within_", "heading_within_")):
+    if key.startswith("R@") or key in ("hit_rate", "AP") or key.startswith(("within_", "heading_within_", "fine_within_",
+                                                                          "e2e_within_")):
         return f"{value * 100:.2f}"
     return f"{value:.4g}"

@@ -26,6 +26,8 @@ from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
+from geoloc.models.refiners import check_refiner
+from geoloc.tasks.crossview.refine import RefineConfig, fine_metrics
 
 # What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
 # the batch as the data module gives it and each branch's BranchFeatures (models/crossview.py). They are this
@@ -35,10 +37,11 @@ LOSS_EXTRAS = ("batch", "query_features", "reference_features", "query_views")
 
 class CrossViewTask(Task):
     monitor = "R@1"
+    refine: RefineConfig | None = None  # how the refiner trains and is tested; None: retrieval alone
 
     def __init__(self, model: CrossViewModelConfig, backbone: DictConfig | dict, head: DictConfig | dict,
                  loss: DictConfig | dict, optim: DictConfig | dict, sampler: DictConfig | dict | None = None,
-                 max_epochs: int = 1):
+                 max_epochs: int = 1, refiner: dict | None = None, refine: RefineConfig | None = None):
         super().__init__()
         self.model_cfg, self.optim_section = model, optim
         self.sampler_section = sampler or {"name": "shuffle"}
@@ -55,6 +58,13 @@ class CrossViewTask(Task):
         self.sampler = None
         self.split = None  # the RetrievalSplit validation scores (validate_on): its relevance and views
         self.query_views: dict[str, str] = {}  # {"train": ..., "val": ...}: RetrievalSplit.query_view of each
+        # fine-grained localisation inside the tile (refine.py), built last: a run without one builds nothing more
+        self.refine = refine if refiner else None
+        if self.refine is not None:
+            self.refiner = registry.build("refiner", refiner)
+            check_refiner(self.refiner, f"refiner {refiner.get('name')!r}")
+        else:
+            self.refiner = None
 
     def checkpoint_info(self) -> dict:
         """The query views of the splits trained and validated on ("panorama", "sphere", "image", "aerial"), so
@@ -64,8 +74,10 @@ class CrossViewTask(Task):
     # ---- optimisation --------------------------------------------------------------------------------------
     def configure_optimizers(self):
         # the loss's parameters (a learned InfoNCE temperature) train with the network's
-        opt, sched = registry.build("optimizer", self.optim_section, params=list(self.parameters()),
-                                    max_epochs=self.max_epochs)
+        params = list(self.parameters())
+        if self.refine is not None and self.refine.stage == "refine":  # the retrieval network stays as loaded
+            params = list(self.refiner.parameters())
+        opt, sched = registry.build("optimizer", self.optim_section, params=params, max_epochs=self.max_epochs)
         return [opt], [sched] if sched is not None else []
 
     def train_dataloader(self, dataset, batch_size, engine):
@@ -95,6 +107,27 @@ class CrossViewTask(Task):
             self.sampler.set_descriptors(desc["query"], desc["reference"])
 
     def training_step(self, batch, engine):
+        if self.refine is None:
+            return self._retrieval_step(batch)
+        out = self.refiner(batch["refine_query"], batch["refine_reference"], self._candidates())
+        refine_loss = out.nll(batch["tile_px"], batch["refine_heading"].float()).mean()
+        if self.refine.stage == "refine":
+            return {"loss": refine_loss, "refine_loss": refine_loss.detach()}
+        retrieval = self._retrieval_step(batch)
+        return {**retrieval, "loss": retrieval["loss"] + self.refine.weight * refine_loss,
+                "refine_loss": refine_loss.detach()}
+
+    def _candidates(self):
+        """The heading bins the refiner scores: north alone when the heading is known (RefineConfig.candidates)."""
+        return self.refine.candidates(getattr(self.refiner, "heading_bins", 36))
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        if mode and self.refine is not None and self.refine.stage == "refine":
+            self.model.eval()  # frozen: its batch-norm statistics stay as loaded
+        return self
+
+    def _retrieval_step(self, batch):
         extras = {}
         if {"query_features", "reference_features"} & set(self.loss_extras):  # the maps only when asked for
             extras["query_features"], extras["reference_features"] = self.model.features(batch["query"],
@@ -139,15 +172,43 @@ class CrossViewTask(Task):
                     "heading": batch["heading"]}
         if loader is None:
             query, reference = self.model(batch["query"], batch["reference"])
-            return {"query": query, "reference": reference, "index": batch["index"]}
+            out = {"query": query, "reference": reference, "index": batch["index"]}
+            if self.refine is not None:
+                out.update(refine_query_map=self.refiner.encode_query(batch["refine_query"]),
+                           refine_reference_map=self.refiner.encode_reference(batch["refine_reference"]),
+                           refine_heading=batch["refine_heading"].float())
+            return out
         query_encoder, reference_encoder = self.model.encoders(self.split is not None and self.split.aerial_queries)
         if loader == "query" and "heading" in batch:  # the queries apart, each at K candidate headings
             return {"descriptor": candidate_descriptors(query_encoder, batch["image"]), "index": batch["index"],
                     "heading": batch["heading"]}
         encoder = query_encoder if loader == "query" else reference_encoder
-        return {"descriptor": encoder(batch["image"]), "index": batch["index"]}
+        out = {"descriptor": encoder(batch["image"]), "index": batch["index"]}
+        if self.refine is not None:
+            encode = self.refiner.encode_query if loader == "query" else self.refiner.encode_reference
+            out["refine_map"] = encode(batch["refine_image"])
+            if loader == "query":
+                out["refine_heading"] = batch["refine_heading"].float()
+        return out
 
     def validation_epoch_end(self, outputs):
+        metrics = self._retrieval_metrics(outputs)
+        if self.refine is not None and self.split is not None:
+            metrics.update(self._fine_metrics(outputs))
+        return metrics
+
+    def _fine_metrics(self, outputs) -> dict:
+        """The refiner's metrics (refine.fine_metrics): each query in its positive tile and in its top-1."""
+        if isinstance(outputs.get("query"), dict):  # two loaders
+            query, reference = outputs["query"], outputs["reference"]
+            maps = (query["refine_map"], reference["refine_map"], query["refine_heading"])
+            descriptors = (query["descriptor"], reference["descriptor"])
+        else:
+            maps = (outputs["refine_query_map"], outputs["refine_reference_map"], outputs["refine_heading"])
+            descriptors = (outputs["query"], outputs["reference"])
+        return fine_metrics(self.refiner, self.split, self.refine, self._candidates(), *maps, *descriptors)
+
+    def _retrieval_metrics(self, outputs):
         if "query" in outputs and isinstance(outputs["query"], dict):  # two loaders
             query, reference = outputs["query"]["descriptor"], outputs["reference"]["descriptor"]
             heading = outputs["query"].get("heading")

@@ -1,0 +1,60 @@
+"""The correlation refiner's cost: one query refined in its top-5 tiles (encode the query, encode 5 tiles, match),
+on one thread, at the refiner's input sides and with a known heading (1 bin) or an unknown one (36 bins).
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128] [--tiles 5] [--repeats 20]
+
+Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once)."""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from geoloc import registry
+import geoloc.models.refiners  # noqa: F401
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - start) * 1000)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--sides", type=int, nargs="+", default=[64, 128])
+    parser.add_argument("--tiles", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    refiner = registry.build("refiner", {"name": "correlation"}).eval()
+    print(f"| side | headings | query + {args.tiles} tiles (ms) | {args.tiles} tiles encoded (ms) | match (ms) |")
+    print("|---|---|---|---|---|")
+    for side in args.sides:
+        query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
+        for bins in (1, 36):
+            headings = torch.arange(bins) * (360.0 / bins)
+
+            @torch.no_grad()
+            def whole():
+                maps = refiner.encode_query(query)
+                refiner.match(maps.expand(args.tiles, -1, -1, -1), refiner.encode_reference(tiles), headings)
+
+            with torch.no_grad():
+                encoded = refiner.encode_reference(tiles)
+                maps = refiner.encode_query(query).expand(args.tiles, -1, -1, -1)
+                tile_ms = median_ms(lambda: refiner.encode_reference(tiles), args.repeats)
+                match_ms = median_ms(lambda: refiner.match(maps, encoded, headings), args.repeats)
+            print(f"| {side} | {bins} | {median_ms(whole, args.repeats):.1f} | {tile_ms:.1f} | {match_ms:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""The built-in refiner: dense correlation of the query's aligned (IPT, aerial-like) feature map with the tile's,
+over every shift and a set of rotations (docs/localisation.md says why this one).
+
+After the inverse polar transform a street panorama looks like an aerial image centred on the camera, north up
+when its heading is known. Where the camera stands in the tile is then the shift that best lays the query's map
+on the tile's, and an unknown heading is a rotation of the query's map (a circular shift of the panorama). As in
+CCVPE (Xia et al., "Convolutional Cross-View Pose Estimation", TPAMI 2023) the answer is a probability over every
+position (and heading bin), trained by the likelihood of the truth; the matching here is a plain correlation of
+small learnt feature maps, so it trains on a CPU in minutes.
+
+    query S x S -> encoder -> C x n x n (n = S / 2), L2-normalised per position; rotated by each heading bin;
+    its central k x k window (k = kernel_frac * n) slides over the tile's C x n x n map (zero padded; by FFT):
+    score(heading, position) = scale * mean cosine over the window, at the (n + 1) x (n + 1) lattice of cell
+    corners (the query's camera sits at its map's centre, a cell corner), log-softmax over heading x position.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from geoloc.models.refiners.refinement import Refinement
+from geoloc.registry import register
+
+
+def _block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> list[nn.Module]:
+    return [nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False),
+            nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+
+
+def encoder(width: int, channels: int) -> nn.Sequential:
+    """3 x S x S -> channels x S/2 x S/2, receptive field 29 pixels (one stride-2 stage, then dilated context)."""
+    return nn.Sequential(*_block(3, width), *_block(width, 2 * width, stride=2), *_block(2 * width, 2 * width),
+                         *_block(2 * width, 2 * width, dilation=2), *_block(2 * width, 2 * width, dilation=4),
+                         nn.Conv2d(2 * width, channels, 1))
+
+
+def rotate_maps(maps: torch.Tensor, headings_deg: torch.Tensor) -> torch.Tensor:
+    """B x C x n x n -> B x K x C x n x n: each map turned clockwise (as seen north up) by each heading, about its
+    centre, bilinearly, zeros outside. A view of heading h shows bearing h at the top of its IPT image; turning it
+    clockwise by h puts north back at the top."""
+    b, c, h, w = maps.shape
+    k = headings_deg.numel()
+    theta = torch.deg2rad(headings_deg.to(maps.dtype).to(maps.device))
+    cos, sin = torch.cos(theta), torch.sin(theta)
+    zero = torch.zeros_like(cos)
+    # output point q samples the input at R(-theta) q (affine_grid maps output to input coordinates)
+    affine = torch.stack([torch.stack([cos, sin, zero], -1), torch.stack([-sin, cos, zero], -1)], 1)  # K x 2 x 3
+    grid = F.affine_grid(affine, (k, c, h, w), align_corners=False)  # K x n x n x 2
+    repeated = maps[:, None].expand(b, k, c, h, w).reshape(b * k, c, h, w)
+    out = F.grid_sample(repeated, grid.repeat(b, 1, 1, 1), mode="bilinear", padding_mode="zeros",
+                        align_corners=False)
+    return out.reshape(b, k, c, h, w)
+
+
+def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg: torch.Tensor,
+              kernel: int) -> torch.Tensor:
+    """query_maps, reference_maps: B x C x n x n (n even); -> B x K x (n+1) x (n+1) mean dot products of the
+    query's central kernel x kernel window (kernel even), rotated by each heading, with the reference map, the
+    query's centre laid on each cell corner (i, j) of the reference map."""
+    b, c, n, _ = query_maps.shape
+    if reference_maps.shape != query_maps.shape or n % 2 or kernel % 2 or not 2 <= kernel <= n:
+        raise ValueError(f"correlate takes two B x C x n x n maps (n even) and an even kernel <= n; got "
+                         f"{tuple(query_maps.shape)}, {tuple(reference_maps.shape)}, kernel {kernel}")
+    k = headings_deg.numel()
+    rotated = rotate_maps(query_maps, headings_deg)
+    start = (n - kernel) // 2
+    window = rotated[..., start:start + kernel, start:start + kernel]  # B x K x C x kernel x kernel
+    # a correlation is a convolution with the flipped window: by FFT, several times faster than a grouped conv2d
+    # of large kernels on a CPU; padded to n + kernel so nothing wraps around
+    size = (n + kernel, n + kernel)
+    reference = torch.fft.rfft2(reference_maps.float(), s=size)  # B x C x N x N/2+1
+    window = torch.fft.rfft2(window.float().flip(-1, -2), s=size)  # B x K x C x N x N/2+1
+    full = torch.fft.irfft2(torch.einsum("bchw,bkchw->bkhw", reference, window), s=size)
+    # output corner o: the window's centre on the reference map's cell corner o (full index o + kernel/2 - 1)
+    first = kernel // 2 - 1
+    return full[..., first:first + n + 1, first:first + n + 1] / (kernel * kernel)
+
+
+class CorrelationRefiner(nn.Module):
+    """Two unshared small encoders (query: the aligned street image, reference: the tile) and a correlation."""
+
+    def __init__(self, channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
+                 scale: float = 20.0):
+        super().__init__()
+        if channels < 1 or width < 1 or heading_bins < 1 or not 0.0 < kernel_frac <= 1.0 or scale <= 0:
+            raise ValueError(f"refiner correlation: channels, width, heading_bins must be >= 1, kernel_frac in (0, 1] "
+                             f"and scale > 0; got channels={channels}, width={width}, heading_bins={heading_bins}, "
+                             f"kernel_frac={kernel_frac}, scale={scale}")
+        self.kernel_frac, self.heading_bins = kernel_frac, heading_bins
+        self.query_encoder = encoder(width, channels)
+        self.reference_encoder = encoder(width, channels)
+        self.log_scale = nn.Parameter(torch.tensor(math.log(scale)))
+
+    def encode_query(self, images: torch.Tensor) -> torch.Tensor:
+        """B x 3 x S x S aligned (IPT) street images -> B x C x S/2 x S/2, unit length per position."""
+        return F.normalize(self.query_encoder(images), dim=1)
+
+    def encode_reference(self, images: torch.Tensor) -> torch.Tensor:
+        """B x 3 x S x S tiles -> B x C x S/2 x S/2, unit length per position."""
+        return F.normalize(self.reference_encoder(images), dim=1)
+
+    def match(self, query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg) -> Refinement:
+        headings = torch.as_tensor(headings_deg, dtype=torch.float32, device=query_maps.device).reshape(-1)
+        n = query_maps.shape[-1]
+        kernel = max(2, 2 * round(self.kernel_frac * n / 2))
+        scores = correlate(query_maps, reference_maps, headings, kernel) * self.log_scale.exp()
+        b = scores.shape[0]
+        log_prob = F.log_softmax(scores.reshape(b, -1), dim=1).reshape(scores.shape)
+        return Refinement(log_prob, headings)
+
+    def forward(self, query: torch.Tensor, reference: torch.Tensor, headings_deg) -> Refinement:
+        return self.match(self.encode_query(query), self.encode_reference(reference), headings_deg)
+
+
+@register("refiner", "correlation")
+def correlation(channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
+                scale: float = 20.0) -> CorrelationRefiner:
+    """channels: matched feature channels; width: the encoders' first width; kernel_frac: the share of the query
+    map's side that is matched; heading_bins: candidate headings 360 k / K when the heading is unknown; scale: the
+    initial logit scale of a mean cosine (learnt)."""
+    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale)

@@ -36,6 +36,8 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
                           "flip/rotate and rotation of panoramas and the panorama field of view / heading do not "
                           "apply; set dataset.alignment=none dataset.joint_flip_rotate=false dataset.rotation_deg=0 "
                           "dataset.fov=360 dataset.random_heading=false")
+    if split == "train" and cfg.calibration_holdout:
+        out = limited(out, out.num_queries - _holdout(cfg, out))  # the held-out tail is never trained on
     limit = cfg.max_train if split == "train" else cfg.max_val
     if limit and limit < out.num_queries:
         out = limited(out, limit)
@@ -47,6 +49,25 @@ def limited(split: RetrievalSplit, n: int) -> RetrievalSplit:
     """The first n queries; a one-to-one split keeps its pairs (the first n references too)."""
     cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
     return replace(split, **{k: None if getattr(split, k) is None else getattr(split, k)[:n] for k in cut})
+
+
+def _holdout(cfg: CrossViewDataConfig, train: RetrievalSplit) -> int:
+    if cfg.calibration_holdout >= train.num_queries:
+        raise ConfigError(f"dataset.calibration_holdout={cfg.calibration_holdout} keeps every one of the "
+                          f"{train.num_queries} train queries of {train.name} out of training: give fewer (a tenth "
+                          "to a quarter of them), or 0 for none")
+    return cfg.calibration_holdout
+
+
+def held_out(split: RetrievalSplit, n: int) -> RetrievalSplit:
+    """The last n queries of `split` (what dataset.calibration_holdout keeps out of training); a one-to-one split
+    keeps its pairs (the last n references, query i matching reference i)."""
+    start = split.num_queries - n
+    cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
+    tail = {k: None if getattr(split, k) is None else getattr(split, k)[start:] for k in cut}
+    if split.one_to_one:
+        tail["positives"] = np.arange(n)
+    return replace(split, **tail)
 
 
 def paths_to_check(split: RetrievalSplit) -> list[Path]:
@@ -159,9 +180,23 @@ def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augme
     return CrossViewPairs(read_split(cfg, reader, split), cfg, train=train, augment_seed=augment_seed)
 
 
+def calibration_data(cfg: CrossViewDataConfig, reader: dict) -> EvalData | None:
+    """The labelled queries that fit the confidence: the train split's last dataset.calibration_holdout queries
+    (kept out of training), at the known heading; None when the checkpoint kept none."""
+    if not cfg.calibration_holdout:
+        return None
+    train = registry.build("dataset", reader, root=cfg.root, split="train")
+    split = held_out(train, _holdout(cfg, train))
+    check_files(paths_to_check(split), split.root, "train", cfg.check_files)
+    return eval_data(split, replace(cfg, random_heading=False))
+
+
 def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str) -> EvalData:
     """What validation and evaluation read of `split`: its pairs (one-to-one) or its queries and gallery apart."""
-    data = read_split(cfg, reader, split)
+    return eval_data(read_split(cfg, reader, split), cfg)
+
+
+def eval_data(data: RetrievalSplit, cfg: CrossViewDataConfig) -> EvalData:
     if data.one_to_one:
         return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading))
     if cfg.random_heading:

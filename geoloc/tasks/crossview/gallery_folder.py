@@ -5,7 +5,8 @@
 - gallery.json: what built it: the weights' `model_fingerprint` (engine/checkpoint.py) and the `ckpt` path, the
   `dataset` reader, the `split`, its absolute `root` and `references_sha256` (the ordered reference paths,
   places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
-- references.jsonl, queries.jsonl: the places (places.py).
+- references.jsonl, queries.jsonl: the places (places.py);
+- calibration.json: the answers' confidence (confidence.py), or why there is none.
 
 Saving writes every file into a hidden folder beside DIR (`.DIR.<random>.tmp`) and renames that folder to DIR, so
 DIR holds a whole gallery or none: an interrupted save leaves the old gallery as it was. An existing gallery is
@@ -37,7 +38,7 @@ from geoloc.engine.checkpoint import umask
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview.places import Places, read_places, split_record, write_places
 
-INFO, INDEX = "gallery.json", "gallery.pt"
+INFO, INDEX, CALIBRATION = "gallery.json", "gallery.pt", "calibration.json"
 # gallery.json's fields and their JSON types ("positions" is null or a string, checked by read_places)
 FIELDS = {"num_references": int, "dim": int, "backend": str, "kind": str, "ckpt": str, "model_fingerprint": str,
           "dataset": str, "split": str, "root": str, "query_view": str, "references_sha256": str,
@@ -54,6 +55,7 @@ class SavedGallery:
     info: dict
     index: GalleryIndex
     places: Places
+    calibration: dict | None = None  # calibration.json; None: saved without one (uncalibrated)
 
 
 def rebuild(folder: Path, ckpt=None) -> str:
@@ -89,9 +91,10 @@ def _built_from(folder: Path) -> str:
 
 
 def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit, record: dict,
-                 overwrite: bool = False) -> dict:
+                 overwrite: bool = False, calibration: dict | None = None) -> dict:
     """Write the gallery of `split` (its references, in order, are `index`'s rows) into `folder`, whole or not at
-    all; `record` holds what built it (ckpt, model_fingerprint, dataset, reference_spread). Returns gallery.json."""
+    all; `record` holds what built it (ckpt, model_fingerprint, dataset, reference_spread); `calibration` is
+    written as calibration.json. Returns gallery.json."""
     folder = Path(folder)
     check_target(folder, overwrite)
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -102,6 +105,8 @@ def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit,
         info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
                 **index.params, **record, **write_places(tmp, split)}
         (tmp / INFO).write_text(json.dumps(info, indent=2) + "\n")
+        if calibration is not None:
+            (tmp / CALIBRATION).write_text(json.dumps(calibration, indent=2, allow_nan=False) + "\n")
         _move_into_place(tmp, folder, overwrite)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # after an exchange, tmp holds the old gallery
@@ -210,6 +215,23 @@ def open_gallery(folder: str | Path, fingerprint: str, ckpt, device=None, split:
             raise ConfigError(f"{folder / INDEX} holds {len(index)} references of dim {index.dim}, but {folder / INFO} "
                               f"records {info['num_references']} of dim {info['dim']}: one of them was replaced")
         places = read_places(folder, info)
+        calibration = read_calibration(folder)
     except ValueError as err:  # ConfigError included: the file is named, the way out is added here
         raise ConfigError(f"{err}. {rebuild(folder, ckpt)}") from err
-    return SavedGallery(folder, info, index, places)
+    return SavedGallery(folder, info, index, places, calibration)
+
+
+def read_calibration(folder: Path) -> dict | None:
+    """calibration.json of `folder` as a dict holding "calibrated" (a bool), or None when there is none."""
+    path = folder / CALIBRATION
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path} is not complete JSON ({err})") from None
+    if not isinstance(record, dict) or not isinstance(record.get("calibrated"), bool) or (
+            record["calibrated"] and not isinstance(record.get("targets"), dict)):
+        raise ConfigError(f"{path} holds no calibration record ({{\"calibrated\": true, \"targets\": {{...}}}} or "
+                          "{\"calibrated\": false, \"why\": ...})")
+    return record

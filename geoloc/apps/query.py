@@ -25,7 +25,11 @@ FOV = "the horizontal field of view in degrees, in (0, 360]: 360 for a full pano
 TOPK = "how many references to return, an integer from 1 to max_topk (default 5)"
 HEADING = ("the image's bearing in degrees clockwise from north, when known (0 for a north-aligned panorama); "
            "leave it out to have it searched")
-HINTS = {"fov": FOV, "topk": TOPK, "heading": HEADING}
+HEADING_PRIOR = ("how far, in degrees, the true bearing may lie from the given heading, in [0, 180]: the heading "
+                 "search then tries only the candidate headings within heading ± heading_prior (needs heading)")
+ABSTAIN = ("a confidence threshold in [0, 1]: an answer whose confidence (the calibrated probability that its top-1 "
+           "tile is right) is below it says it abstains; needs a calibrated gallery and a given heading")
+HINTS = {"fov": FOV, "topk": TOPK, "heading": HEADING, "heading_prior": HEADING_PRIOR, "abstain": ABSTAIN}
 
 
 @dataclass
@@ -35,6 +39,8 @@ class QuerySettings:
     fov: float = 360.0  # the image's horizontal field of view in degrees: 360 = a panorama; less = a street photo
     topk: int = 5  # references returned
     heading: float | None = None  # its bearing when known (degrees clockwise from north; CVUSA panoramas: 0)
+    heading_prior: float | None = None  # ± degrees around `heading` the search tries; None: heading taken as exact
+    abstain: float | None = None  # answers less confident than this abstain; None: never
 
 
 @dataclass
@@ -86,7 +92,7 @@ def _number(key: str, value) -> float:
 
 
 def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_topk: int | None = None,
-                   ) -> QuerySettings:
+                   heading_prior: Any = None, abstain: Any = None) -> QuerySettings:
     """Settings as given (numbers, or text as a form sends them; None: the default) -> QuerySettings, or QueryError
     naming the setting."""
     default = QuerySettings()
@@ -107,7 +113,16 @@ def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_t
         raise QueryError("max_topk", f"topk={topk} is over the limit of {max_topk} references an answer lists "
                                      "(max_topk): ask for fewer", 413)
     heading = default.heading if heading is None or heading == "" else _number("heading", heading)
-    return QuerySettings(fov, topk, heading)
+    prior = None if heading_prior is None or heading_prior == "" else _number("heading_prior", heading_prior)
+    if prior is not None:
+        if not 0.0 <= prior <= 180.0:
+            raise _bad("heading_prior", heading_prior, "is outside [0, 180]")
+        if heading is None:
+            raise _bad("heading_prior", heading_prior, "is given without heading: give the heading it is around")
+    threshold = None if abstain is None or abstain == "" else _number("abstain", abstain)
+    if threshold is not None and not 0.0 <= threshold <= 1.0:
+        raise _bad("abstain", abstain, "is outside [0, 1]")
+    return QuerySettings(fov, topk, heading, prior, threshold)
 
 
 def check_headings(steps: int, limits: QueryLimits) -> int:

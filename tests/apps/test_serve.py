@@ -42,9 +42,10 @@ class FakeLocalizer:
     def info(self) -> dict:
         return {"checkpoint": "fake.pt", "gallery_size": 3, "dim": 8, "device": "cpu"}
 
-    def check(self, width, height, fov=None, topk=None, heading=None, name="the image"):
+    def check(self, width, height, fov=None, topk=None, heading=None, name="the image", heading_prior=None,
+              abstain=None):
         """The Localizer's check, on a panorama's canvas (rows H, columns W·360/fov)."""
-        settings = check_settings(fov, topk, heading, self.limits.max_topk)
+        settings = check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
         check_size(name, width, height, settings.fov, (height, width * 360.0 / settings.fov), self.limits)
         return settings
 

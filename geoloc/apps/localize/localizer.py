@@ -5,7 +5,12 @@ places.py): the reference descriptors, where each reference is, and the split's 
 general, so the image is encoded at K candidate headings on the 360° canvas (geoloc/tasks/crossview/views.py) and each
 reference keeps its best-scoring candidate: the score ranks the references, the candidate is the heading estimate
 (a circular correlation through the query encoder, DSM-style). `heading=` skips the search when it is known
-(north-aligned panoramas such as CVUSA's are heading 0).
+(north-aligned panoramas such as CVUSA's are heading 0); `heading_prior=` with it searches only the candidates within
+± that many degrees of it.
+
+The confidence (docs/confidence.md) is the gallery's calibrated P(top-1 tile right), from the top-1 score and its
+margin over the second; it is given where the query's condition is the one it was fitted in (the heading given,
+exactly, at the fitted field of view), and `abstain=` marks answers below a threshold.
 """
 
 from __future__ import annotations
@@ -23,9 +28,12 @@ from geoloc.data.validate import decode_rgb
 from geoloc.data.geo import distance_m, offset_to_latlon
 from geoloc.data.io import read_rgb
 from geoloc.data.relevance import Relevance
+from geoloc.eval.calibration import Calibrator, retrieval_features
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview import POSITION_KEYS, CrossViewEncoder, LocalizationResult, open_gallery
+from geoloc.tasks.crossview import (POSITION_KEYS, TOP1, CrossViewEncoder, LocalizationResult, calibrators,
+                                    open_gallery)
+from geoloc.tasks.crossview.views import headings_around
 
 CANDIDATES_PER_PASS = 12  # candidate headings encoded per forward pass: bounds the activations of a heading search
 
@@ -38,8 +46,11 @@ class Localizer:
     running at once (the service serialises them). `limits` bound what one image may cost (query.py)."""
 
     def __init__(self, encoder: CrossViewEncoder, index: GalleryIndex, places, info: dict,
-                 heading_steps: int | None = None, limits: QueryLimits | None = None):
+                 heading_steps: int | None = None, limits: QueryLimits | None = None,
+                 calibration: dict | None = None):
         self.encoder, self.index, self.places, self.meta = encoder, index, places, info
+        self.calibration = calibration  # the gallery's calibration.json (None: saved without one)
+        self.calibrator: Calibrator | None = calibrators(calibration).get(TOP1)
         self.limits = limits.limits() if limits is not None else QueryLimits()
         # candidate headings of the search: as asked, else as the checkpoint's dataset config says
         self.device = encoder.device
@@ -58,19 +69,44 @@ class Localizer:
         # every file checked, and refused unless these weights built it: each problem names its file
         saved = open_gallery(gallery, encoder.fingerprint, ckpt, device=encoder.device)
         return cls(encoder, saved.index, saved.places, {**saved.info, "ckpt_loaded": str(ckpt)}, heading_steps,
-                   limits)
+                   limits, saved.calibration)
 
     def info(self) -> dict:
         """What /health and the JSON output say about the loaded model and gallery."""
         return {"ckpt": self.meta.get("ckpt_loaded"), "gallery_size": len(self.index), "dim": self.index.dim,
                 "index": self.index.kind, "positions": self.places.kind, "query_view": self.view,
-                "device": str(self.device), "heading_steps": self.heading_steps, "limits": vars(self.limits)}
+                "device": str(self.device), "heading_steps": self.heading_steps, "limits": vars(self.limits),
+                "calibration": self.calibration_info()}
+
+    def calibration_info(self) -> dict:
+        """{"calibrated": True, "condition": what queries the confidence holds for, "fitted_on"} or
+        {"calibrated": False, "why": ...}."""
+        if self.calibrator is None:
+            why = (self.calibration or {}).get("why", "the gallery was saved without a calibration.json")
+            return {"calibrated": False, "why": why}
+        return {"calibrated": True, "condition": self.calibrator.condition, "fitted_on": self.calibrator.fitted_on}
+
+    def calibrated_for(self, query: QuerySettings) -> bool:
+        """Whether the confidence holds for a query of these settings: the heading given exactly, at the field of
+        view the calibration was fitted at."""
+        if self.calibrator is None:
+            return False
+        condition = self.calibrator.condition
+        return (query.heading is not None and not query.heading_prior
+                and query.fov == condition.get("fov", 360.0))
 
     def check(self, width: int, height: int, fov=None, topk=None, heading=None, name: str = "the image",
-              ) -> QuerySettings:
+              heading_prior=None, abstain=None) -> QuerySettings:
         """A query's settings as given (numbers or text; None: the default) and its image's size, checked before
         anything is decoded: the settings, or QueryError naming the setting or the limit (query.py)."""
-        settings = check_settings(fov, topk, heading, self.limits.max_topk)
+        settings = check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
+        if settings.abstain is not None and not self.calibrated_for(settings):
+            info = self.calibration_info()
+            held = (f"its confidence is calibrated for {info['condition']}" if info["calibrated"] else
+                    f"the gallery is uncalibrated: {info['why']}")
+            raise QueryError("abstain", f"abstain={settings.abstain:g} needs the answer's confidence, and {held}: "
+                                        "give the image's heading (without heading_prior) at that fov, or leave "
+                                        "abstain out")
         check_size(name, width, height, settings.fov, self.encoder.canvas_shape(height, width, settings.fov, self.view),
                    self.limits)
         return settings
@@ -78,28 +114,40 @@ class Localizer:
     @torch.no_grad()
     def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | None = None,
                  name: str | None = None, path: Path | None = None, deadline: float | None = None,
-                 ) -> LocalizationResult:
+                 heading_prior: float | None = None, abstain: float | None = None) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
         photo covering `fov` degrees of bearing, horizon band only. heading: its bearing when known (degrees
         clockwise from north); None searches `heading_steps` candidates. path: the file, to find the image among
         the gallery split's queries (its true position then comes with the answer). deadline: a time.monotonic()
-        past which the search stops with QueryError (503) instead of encoding its next candidates."""
+        past which the search stops with QueryError (503) instead of encoding its next candidates. heading_prior:
+        search only within ± this many degrees of `heading`. abstain: a confidence threshold (module docstring)."""
         if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be an H×W×3 uint8 RGB array, got {getattr(image, 'shape', type(image))} "
                              f"{getattr(image, 'dtype', '')}")
-        query = self.check(image.shape[1], image.shape[0], fov, topk, heading, name or str(path or "the image"))
-        inputs, headings = self.encoder.street_inputs(image, query.fov, query.heading, self.heading_steps,
-                                                      view=self.view)
+        query = self.check(image.shape[1], image.shape[0], fov, topk, heading, name or str(path or "the image"),
+                           heading_prior, abstain)
+        given = query.heading
+        if query.heading_prior:
+            given = headings_around(query.heading, query.heading_prior, self.heading_steps)
+        inputs, headings = self.encoder.street_inputs(image, query.fov, given, self.heading_steps, view=self.view)
         descriptors = torch.cat([self._encode(inputs[start:start + CANDIDATES_PER_PASS], deadline)
                                  for start in range(0, len(inputs), CANDIDATES_PER_PASS)])
-        # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate suffice
-        scores, rows = self.index.search(descriptors, min(len(self.index), query.topk))
-        best = self._merge(scores, rows, headings)[: query.topk]
+        # a row of the overall top-k is within the top-k of its own best candidate, so topk rows per candidate
+        # suffice; at least 2, the confidence's margin
+        scores, rows = self.index.search(descriptors, min(len(self.index), max(2, query.topk)))
+        merged = self._merge(scores, rows, headings)
+        best = merged[: query.topk]
+        confidence = None
+        if self.calibrated_for(query):
+            features = retrieval_features([[hit["score"] for hit in merged[:2]]])
+            confidence = float(self.calibrator.probability(features)[0])
+        source = "search" if query.heading is None else "prior" if query.heading_prior else "given"
         answer = LocalizationResult(image=name or (str(path) if path else None), fov_deg=query.fov,
-                                    heading_deg=best[0]["heading_deg"],
-                                    heading_source="search" if query.heading is None else "given",
+                                    heading_deg=best[0]["heading_deg"], heading_source=source,
                                     position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,
-                                    truth=self._truth(path, best))
+                                    truth=self._truth(path, best), confidence=confidence,
+                                    calibrated=confidence is not None,
+                                    abstained=None if query.abstain is None else confidence < query.abstain)
         if self.refines(query.fov):
             self._refine(answer, image)
         return answer
@@ -147,6 +195,19 @@ class Localizer:
         merged_scores, merged_rows, candidate = (x[0].tolist() for x in merge_headings(scores[None], rows[None]))
         return [{"rank": i + 1, **self.places.reference(row), "score": score, "heading_deg": float(headings[k])}
                 for i, (score, row, k) in enumerate(zip(merged_scores, merged_rows, candidate)) if row >= 0]
+
+    def tile(self, row) -> Path:
+        """The image file of gallery row `row` (an integer, or its decimal text, in [0, gallery size)): QueryError
+        404 naming the row when there is no such row or its file is not on this machine."""
+        text = str(row).strip()
+        if not (text.isascii() and text.isdigit()) or int(text) >= len(self.index):
+            raise QueryError("row", f"tile row {str(row)[:40]!r} is not a gallery row: give an integer from 0 to "
+                                    f"{len(self.index) - 1} (an answer's topk[i].row)", 404)
+        path = self.places.root / self.places.references[int(text)]
+        if not path.is_file():
+            raise QueryError("row", f"gallery row {int(text)}'s tile {self.places.references[int(text)]} is not on "
+                                    f"this machine (under the gallery's dataset root {self.places.root})", 404)
+        return path
 
     def _position(self, row: int) -> dict | None:
         ref = self.places.reference(row)

@@ -67,11 +67,11 @@ def refuse_out_holding_inputs(out: Path, images: list[Path]) -> None:
 
 def localize(section: DictConfig) -> list[dict]:
     """Each image's answer as written to localize.jsonl (LocalizationResult.to_json)."""
-    settings = [section.get(key) for key in ("fov", "topk", "heading")]
+    keys = ("fov", "topk", "heading", "heading_prior", "abstain")
     try:  # as the service checks its form fields: first as given (fov=abc, heading=nan), then against max_topk
-        check_settings(*settings)
+        check_settings(**{key: section.get(key) for key in keys})
         cfg = checked(section, LocalizeConfig, "localize.py")
-        check_settings(cfg.fov, cfg.topk, cfg.heading, cfg.max_topk)
+        check_settings(**{key: getattr(cfg, key) for key in keys}, max_topk=cfg.max_topk)
     except QueryError as err:
         raise ConfigError(f"localize.py: {err}") from None
     images = images_of(Path(cfg.image))
@@ -81,11 +81,17 @@ def localize(section: DictConfig) -> list[dict]:
     with claimed(out, role="localization", key="out"):  # one writer per folder; a failed start leaves none
         localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps,
                                    limits=cfg)
+        query = {"fov": cfg.fov, "topk": cfg.topk, "heading": cfg.heading, "heading_prior": cfg.heading_prior,
+                 "abstain": cfg.abstain}
+        try:  # abstain needs a calibrated gallery: refused before any image is read
+            localizer.check(1, 1, **query)
+        except QueryError as err:
+            raise ConfigError(f"localize.py: {err}") from None
         with open(out / "localize.jsonl", "a") as lines:
             for path in images:
                 image = read_street(path, lambda width, height, name=str(path): localizer.check(
-                    width, height, cfg.fov, cfg.topk, cfg.heading, name))
-                result = localizer.localize(image, fov=cfg.fov, topk=cfg.topk, heading=cfg.heading, path=path)
+                    width, height, name=name, **query))
+                result = localizer.localize(image, path=path, **query)
                 if cfg.picture:
                     from geoloc.apps.localize.picture import localization_figure
 

@@ -3,16 +3,21 @@
     app = create_app(Localizer.load(ckpt, gallery))   # the model and the gallery are loaded once, by the caller
     uvicorn.run(app)                                   # or: geoloc serve ckpt=... gallery=DIR
 
+GET / -> the page (static/index.html + page.js: drop a street image, see the answer); GET /tiles/{row} -> the
+gallery's tile image of that row (what the page shows of the top-k)
 GET /health -> {"status": "ok", **localizer.info()}
 POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama),
-`topk` (1 to max_topk, default 5) and `heading` (degrees clockwise from north when known; default: searched) as form
+`topk` (1 to max_topk, default 5), `heading` (degrees clockwise from north when known; default: searched),
+`heading_prior` (± degrees around heading to search) and `abstain` (a confidence threshold in [0, 1]) as form
 fields or query parameters, each given once -> localizer.localize(...)'s answer, as JSON.
+No response carries CORS headers: a page of another origin cannot read the answers.
 
-`localizer` is anything with `check(width, height, fov=, topk=, heading=, name=)` (the settings as sent, checked
-with the image's size before it is decoded: a QuerySettings, or QueryError naming the setting or the limit),
-`localize(image, fov=, topk=, name=, deadline=)` (image: H×W×3 uint8 RGB; returns a LocalizationResult, whose
-to_json() is the answer, or a JSON-serialisable dict; it gets `heading=` only when the request gives one) and
-`info()` (a JSON-serialisable dict), e.g. geoloc.apps.localize.Localizer.
+`localizer` is anything with `check(width, height, fov=, topk=, heading=, heading_prior=, abstain=, name=)` (the
+settings as sent, checked with the image's size before it is decoded: a QuerySettings, or QueryError naming the
+setting or the limit), `localize(image, fov=, topk=, name=, deadline=)` (image: H×W×3 uint8 RGB; returns a
+LocalizationResult, whose to_json() is the answer, or a JSON-serialisable dict; it gets `heading=`,
+`heading_prior=` and `abstain=` only when the request gives them), `info()` (a JSON-serialisable dict) and, for
+/tiles, `tile(row)` (the file of gallery row `row`, or QueryError), e.g. geoloc.apps.localize.Localizer.
 Bad input gets a 4xx whose `detail` says what is wrong and what to do; a failure inside the localizer gets a 500
 with its message. Neither stops the server.
 """
@@ -30,16 +35,18 @@ from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request,
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 
-from geoloc.apps.query import FOV, HEADING, TOPK, QueryError
+from geoloc.apps.query import ABSTAIN, FOV, HEADING, HEADING_PRIOR, TOPK, QueryError
 from geoloc.apps.serve.body_limit import BodyLimit
+from geoloc.apps.serve.page import add_page
 from geoloc.apps.serve.upload import SEND, decode_upload
 
 log = logging.getLogger("geoloc.apps.serve")
 
 MAX_BYTES = 32 * 2**20
 MAX_SECONDS = 10.0  # a query's turn at the network: past it, its heading search stops with a 503
-HINTS = {"image": SEND, "fov": FOV, "topk": TOPK, "heading": HEADING}
-SETTINGS = ("fov", "topk", "heading")
+HINTS = {"image": SEND, "fov": FOV, "topk": TOPK, "heading": HEADING, "heading_prior": HEADING_PRIOR,
+         "abstain": ABSTAIN}
+SETTINGS = ("fov", "topk", "heading", "heading_prior", "abstain")
 
 
 def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_SECONDS) -> FastAPI:
@@ -59,17 +66,25 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
     async def health() -> dict:
         return {"status": "ok", **localizer.info()}
 
+    add_page(app, localizer)
+
     # a sync endpoint: FastAPI runs it in its threadpool, so the event loop stays free while the network runs
     @app.post("/localize", dependencies=[Depends(each_field_once)])
     def localize(image: Annotated[UploadFile, File(description="the street image: JPEG or PNG")],
                  fov: Annotated[str | None, Form(description=FOV)] = None,
                  topk: Annotated[str | None, Form(description=TOPK)] = None,
                  heading: Annotated[str | None, Form(description=HEADING)] = None,
+                 heading_prior: Annotated[str | None, Form(description=HEADING_PRIOR)] = None,
+                 abstain: Annotated[str | None, Form(description=ABSTAIN)] = None,
                  fov_query: Annotated[str | None, Query(alias="fov", description=FOV)] = None,
                  topk_query: Annotated[str | None, Query(alias="topk", description=TOPK)] = None,
                  heading_query: Annotated[str | None, Query(alias="heading", description=HEADING)] = None,
+                 heading_prior_query: Annotated[str | None, Query(alias="heading_prior",
+                                                                  description=HEADING_PRIOR)] = None,
+                 abstain_query: Annotated[str | None, Query(alias="abstain", description=ABSTAIN)] = None,
                  ) -> Response:
-        given = {"fov": (fov, fov_query), "topk": (topk, topk_query), "heading": (heading, heading_query)}
+        given = {"fov": (fov, fov_query), "topk": (topk, topk_query), "heading": (heading, heading_query),
+                 "heading_prior": (heading_prior, heading_prior_query), "abstain": (abstain, abstain_query)}
         where = {key: "query parameter" if form is None and query is not None else "form field"
                  for key, (form, query) in given.items()}
         sent = {key: one_of(key, form, query) for key, (form, query) in given.items()}
@@ -81,7 +96,8 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
                     width, height, name=f"the upload {filename!r}", **sent))
             except QueryError as err:
                 raise worded(err, where, max_seconds) from None
-            known = {} if query.heading is None else {"heading": query.heading}
+            known = {key: getattr(query, key) for key in ("heading", "heading_prior", "abstain")
+                     if getattr(query, key) is not None}
             try:
                 result = localizer.localize(rgb, fov=query.fov, topk=query.topk, name=image.filename,
                                             deadline=deadline, **known)

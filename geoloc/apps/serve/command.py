@@ -30,7 +30,8 @@ USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=800
               candidate headings (heading_steps) and topk. An image over a limit gets 413 naming it, read from its
               header before it is decoded; heading_steps over max_headings is refused at start
 
-POST /localize (multipart field image; fov, topk, heading) and GET /health; see README "Query service"."""
+POST /localize (multipart field image; fov, topk, heading, heading_prior, abstain), GET /health, GET / (the page:
+open http://HOST:PORT/ in a browser) and GET /tiles/{{row}}; see README "Query service"."""
 
 
 @dataclass

@@ -40,6 +40,7 @@ class CrossViewDataConfig:
     check_files: str = "decode"  # decode | exists | off
     max_train: int = 0  # 0 = all; for quick runs (one-to-one splits keep their pairs; others cut the queries)
     max_val: int = 0
+    calibration_holdout: int = 0  # the train split's last N queries: kept out of training, they fit the confidence
 
     def __post_init__(self):
         if self.alignment not in ALIGNMENTS:
@@ -49,6 +50,9 @@ class CrossViewDataConfig:
         if self.aerial_size < 16 or len(self.pano_size) != 2 or min(self.pano_size) < 8:
             raise ValueError(f"image sizes too small: aerial_size={self.aerial_size}, pano_size={self.pano_size}")
         check_fov(self.fov, "dataset.fov")
+        if self.calibration_holdout < 0:
+            raise ValueError(f"dataset.calibration_holdout must be >= 0 (train queries kept out of training to fit "
+                             f"the confidence; 0: none, the gallery is uncalibrated), got {self.calibration_holdout}")
         if self.heading_steps < 1:
             raise ValueError(f"dataset.heading_steps must be >= 1 (candidate headings per query), got "
                              f"{self.heading_steps}")

@@ -40,6 +40,8 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
                           "flip/rotate and rotation of panoramas and the panorama field of view / heading do not "
                           "apply; set dataset.alignment=none dataset.joint_flip_rotate=false dataset.rotation_deg=0 "
                           "dataset.fov=360 dataset.random_heading=false")
+    if split == "train" and cfg.calibration_holdout:
+        out = limited(out, out.num_queries - _holdout(cfg, out))  # the held-out tail is never trained on
     limit = cfg.max_train if split == "train" else cfg.max_val
     if limit and limit < out.num_queries:
         out = limited(out, limit)
@@ -51,6 +53,25 @@ def limited(split: RetrievalSplit, n: int) -> RetrievalSplit:
     """The first n queries; a one-to-one split keeps its pairs (the first n references too)."""
     cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
     return replace(split, **{k: None if getattr(split, k) is None else getattr(split, k)[:n] for k in cut})
+
+
+def _holdout(cfg: CrossViewDataConfig, train: RetrievalSplit) -> int:
+    if cfg.calibration_holdout >= train.num_queries:
+        raise ConfigError(f"dataset.calibration_holdout={cfg.calibration_holdout} keeps every one of the "
+                          f"{train.num_queries} train queries of {train.name} out of training: give fewer (a tenth "
+                          "to a quarter of them), or 0 for none")
+    return cfg.calibration_holdout
+
+
+def held_out(split: RetrievalSplit, n: int) -> RetrievalSplit:
+    """The last n queries of `split` (what dataset.calibration_holdout keeps out of training); a one-to-one split
+    keeps its pairs (the last n references, query i matching reference i)."""
+    start = split.num_queries - n
+    cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
+    tail = {k: None if getattr(split, k) is None else getattr(split, k)[start:] for k in cut}
+    if split.one_to_one:
+        tail["positives"] = np.arange(n)
+    return replace(split, **tail)
 
 
 def paths_to_check(split: RetrievalSplit) -> list[Path]:
@@ -227,6 +248,17 @@ def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augme
         raise ConfigError(f"views.name={views.get('name')!r} adds query views for a retrieval loss, and the refiner "
                           "trains on the full panorama: train the refiner with views=single")
     return CrossViewPairs(data, cfg, train=train, augment_seed=augment_seed, views=pairing, refine=refine)
+
+
+def calibration_data(cfg: CrossViewDataConfig, reader: dict) -> EvalData | None:
+    """The labelled queries that fit the confidence: the train split's last dataset.calibration_holdout queries
+    (kept out of training), at the known heading; None when the checkpoint kept none."""
+    if not cfg.calibration_holdout:
+        return None
+    train = registry.build("dataset", reader, root=cfg.root, split="train")
+    split = held_out(train, _holdout(cfg, train))
+    check_files(paths_to_check(split), split.root, "train", cfg.check_files)
+    return eval_sets(replace(cfg, random_heading=False), split)
 
 
 def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str, refine: RefineConfig | None = None) -> EvalData:

@@ -103,14 +103,15 @@ class CrossViewEncoder:
         """image: H×W×3 uint8 RGB, a street view covering `fov` degrees of bearing (360: a panorama; a full sphere,
         view "sphere", is cut to its horizon band as the data module cuts it). heading: its bearing when known
         (degrees clockwise from north); None: the `steps` candidate headings 360·k/steps (default the checkpoint's
-        dataset.heading_steps). view: the images' query view (default the checkpoint's).
+        dataset.heading_steps); an array of headings: those candidates. view: the images' query view (default the
+        checkpoint's).
         -> (K×3×H×W query-branch inputs on the CPU, (K,) headings in degrees)."""
         view = self.query_view if view is None else view
         fov = check_fov(fov, "fov")
         if heading is None:
             headings = candidate_headings(steps or self.data.heading_steps)
-        else:
-            headings = np.array([float(heading) % 360.0])
+        else:  # one known heading, or the candidates of a heading prior (views.headings_around)
+            headings = np.atleast_1d(np.asarray(heading, np.float64)) % 360.0
         return query_inputs(self._street(image, fov, view), self.data, view, fov, headings), headings
 
     def canvas_shape(self, height: int, width: int, fov: float, view: str | None = None) -> tuple[int, float]:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import re
 import warnings
 from dataclasses import dataclass, fields
+from pathlib import Path
 
 import torch
 from torch.utils.data import Dataset
@@ -43,6 +44,8 @@ from geoloc.eval.gallery import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, imp
                                  training_points, training_rows)
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
+from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, calibrators, confidence_report, fit_top1,
+                                               index_answers, uncalibrated, with_positives)
 from geoloc.tasks.crossview.encode import encode, encode_images
 from geoloc.tasks.crossview.gallery_folder import open_codebook, open_gallery, save_gallery
 
@@ -185,9 +188,12 @@ class Rows(Dataset):
         return self.dataset[(self.rows[index], epoch)]
 
 
-def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
+def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict,
+             held_out: EvalData | None = None, fov: float = 360.0, run_dir: Path | None = None) -> dict:
     """Build-and-save or load the gallery, then score the split's queries against it. `meta`: what built it, as
-    gallery.json records it: `ckpt`, `model_fingerprint` (of the task's weights) and `dataset` (the reader)."""
+    gallery.json records it: `ckpt`, `model_fingerprint` (of the task's weights) and `dataset` (the reader).
+    held_out: the labelled queries a saved gallery's confidence is fitted on (confidence.py; None: uncalibrated),
+    seen at field of view `fov`. A calibrated gallery adds `ece_top1` and writes run_dir/confidence.png."""
     split = data.split
     if cfg.train_only or cfg.num_shards > 1 or cfg.codebook:
         return build_part(task, engine, data, batch_size, cfg, meta)
@@ -198,26 +204,31 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
         query = encode_split(task, engine, data, batch_size, sides=("query",))["query"]
         check_descriptors(query)
         plan = split_plan(split, exact=index.kind == "flat")
-        return {**guarded(lambda: index_metrics(index, query, split), spread, plan), "num_references": len(index)}
+        metrics = guarded(lambda: index_metrics(index, query, split), spread, plan)
+        return {**metrics, **scored_confidence(saved.calibration, index, query, split, run_dir),
+                "num_references": len(index)}
     index_knobs(cfg, split.num_references, task.model_cfg.dim)  # a kind that cannot train fails before encoding
     desc = encode_split(task, engine, data, batch_size)
     query, reference = desc["query"], desc["reference"]
     spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
 
+    record = fitted_confidence(task, engine, held_out, batch_size, reference, split, fov) if cfg.save else None
     built = []
 
     def build_and_score() -> dict:  # not called on a collapse: such a gallery is not worth saving
         index = build_index(reference, cfg)
         built.append(index)
         if cfg.save and dist.is_main():
-            save_gallery(cfg.save, index, split, {**meta, "reference_spread": spread}, overwrite=cfg.overwrite)
+            save_gallery(cfg.save, index, split, {**meta, "reference_spread": spread}, overwrite=cfg.overwrite,
+                         calibration=record)
         return index_metrics(index, query, split)
 
     exact = cfg.resolved(split.num_references, reference.shape[1])[1] == "flat"
     metrics = guarded(build_and_score, spread, split_plan(split, exact=exact))
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
-    return {**metrics, "num_references": len(reference)}
+    confidence = scored_confidence(record, built[0], query, split, run_dir) if built else {}
+    return {**metrics, **confidence, "num_references": len(reference)}
 
 
 def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
@@ -264,3 +275,31 @@ def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig
         save_gallery(cfg.save, index, split, record, overwrite=cfg.overwrite,
                      rows=range(0) if cfg.train_only else rows)
     return {"num_references": len(index)}
+
+
+def fitted_confidence(task, engine, held_out: EvalData | None, batch_size: int, reference: torch.Tensor,
+                      split, fov: float) -> dict:
+    """calibration.json's record: the top-1 confidence fitted on the held-out queries against this gallery's
+    references (confidence.py), or why there is none."""
+    if held_out is None:
+        return uncalibrated(NO_HOLDOUT)
+    held = encode_split(task, engine, held_out, batch_size)
+    check_descriptors(held["query"], held["reference"])
+    gallery, rows = with_positives(reference, split.references, held["reference"], held_out.split.references,
+                                   held_out.split.positives)
+    rule = (f"the last {held_out.split.num_queries} queries of {held_out.split.name} (dataset.calibration_holdout),"
+            f" kept out of training, against the {len(split.references)} references of {split.name} plus their "
+            "own positives")
+    return fit_top1(held["query"], gallery, rows, fov, rule)
+
+
+def scored_confidence(record: dict | None, index: GalleryIndex, query: torch.Tensor, split,
+                      run_dir: Path | None) -> dict:
+    """{"ece_top1"} of the split's queries under the gallery's calibrator, and run_dir/confidence.png; {} when the
+    gallery is uncalibrated."""
+    calibrator = calibrators(record).get(TOP1)
+    if calibrator is None:
+        return {}
+    features, right = index_answers(index, query, split.positives)
+    figure = Path(run_dir) / "confidence.png" if run_dir is not None and dist.is_main() else None
+    return confidence_report(calibrator, features, right, figure)

@@ -5,7 +5,8 @@
 - gallery.json: what built it: the weights' `model_fingerprint` (engine/checkpoint.py) and the `ckpt` path, the
   `dataset` reader, the `split`, its absolute `root` and `references_sha256` (the ordered reference paths,
   places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
-- references.jsonl, queries.jsonl: the places (places.py).
+- references.jsonl, queries.jsonl: the places (places.py);
+- calibration.json: the answers' confidence (confidence.py), or why there is none.
 A FAISS index's codes lie in gallery.faiss beside gallery.pt (GalleryIndex.save).
 
 A part of a gallery built across jobs (gallery.py `build_part`) is such a folder too, with a `part` record in
@@ -44,7 +45,7 @@ from geoloc.engine.checkpoint import file_sha256, umask
 from geoloc.eval.gallery import GalleryIndex, faiss_file
 from geoloc.tasks.crossview.places import Places, read_places, split_record, write_places
 
-INFO, INDEX = "gallery.json", "gallery.pt"
+INFO, INDEX, CALIBRATION = "gallery.json", "gallery.pt", "calibration.json"
 # gallery.json's fields and their JSON types ("positions" is null or a string, checked by read_places)
 FIELDS = {"num_references": int, "dim": int, "backend": str, "kind": str, "ckpt": str, "model_fingerprint": str,
           "dataset": str, "split": str, "root": str, "query_view": str, "references_sha256": str,
@@ -61,6 +62,7 @@ class SavedGallery:
     info: dict
     index: GalleryIndex
     places: Places
+    calibration: dict | None = None  # calibration.json; None: saved without one (uncalibrated)
 
 
 def rebuild(folder: Path, ckpt=None) -> str:
@@ -96,24 +98,27 @@ def _built_from(folder: Path) -> str:
 
 
 def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit, record: dict,
-                 overwrite: bool = False, rows=None) -> dict:
+                 overwrite: bool = False, rows=None, calibration: dict | None = None) -> dict:
     """Write the gallery of `split` (its references `rows`, default all, in order, are `index`'s rows) into
     `folder`, whole or not at all; `record` holds what built it (ckpt, model_fingerprint, dataset,
-    reference_spread; a part's `part`). Returns gallery.json."""
+    reference_spread; a part's `part`); `calibration` is written as calibration.json. Returns gallery.json."""
     def fill(tmp: Path) -> dict:
         index.save(tmp / INDEX)
         info = {"num_references": len(index), "dim": index.dim, "backend": index.backend, "kind": index.kind,
                 **index.params, **record, **write_places(tmp, split, rows)}
         if info.get("part", {}).get("role") == "codebook":
             info["codebook_sha256"] = file_sha256(faiss_file(tmp / INDEX))
+        if calibration is not None:
+            (tmp / CALIBRATION).write_text(json.dumps(calibration, indent=2, allow_nan=False) + "\n")
         return info
 
     return write_gallery_folder(folder, fill, overwrite)
 
 
 def write_gallery_folder(folder: str | Path, fill, overwrite: bool = False) -> dict:
-    """Write a gallery folder whole or not at all: `fill(tmp)` writes the index and places into a temporary folder
-    beside `folder` and returns gallery.json's record, which is written last; then the folder moves into place."""
+    """Write a gallery folder whole or not at all: `fill(tmp)` writes the index and places (and any other file)
+    into a temporary folder beside `folder` and returns gallery.json's record, which is written last; then the
+    folder moves into place."""
     folder = Path(folder)
     check_target(folder, overwrite)
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -237,9 +242,10 @@ def open_gallery(folder: str | Path, fingerprint: str, ckpt, device=None, split:
             raise ConfigError(f"{folder / INDEX} holds {len(index)} references of dim {index.dim}, but {folder / INFO} "
                               f"records {info['num_references']} of dim {info['dim']}: one of them was replaced")
         places = read_places(folder, info)
+        calibration = read_calibration(folder)
     except ValueError as err:  # ConfigError included: the file is named, the way out is added here
         raise ConfigError(f"{err}. {rebuild(folder, ckpt)}") from err
-    return SavedGallery(folder, info, index, places)
+    return SavedGallery(folder, info, index, places, calibration)
 
 
 def open_codebook(folder: str | Path, fingerprint: str, ckpt, split: RetrievalSplit, dataset: str, kind: str,
@@ -265,3 +271,19 @@ def open_codebook(folder: str | Path, fingerprint: str, ckpt, split: RetrievalSp
         raise ConfigError(f"{err}. Write the codebook again: python evaluate.py ckpt={ckpt} gallery.train_only=true "
                           f"gallery.save={folder} gallery.overwrite=true") from err
     return SavedGallery(folder, info, index, None)
+
+
+def read_calibration(folder: Path) -> dict | None:
+    """calibration.json of `folder` as a dict holding "calibrated" (a bool), or None when there is none."""
+    path = folder / CALIBRATION
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path} is not complete JSON ({err})") from None
+    if not isinstance(record, dict) or not isinstance(record.get("calibrated"), bool) or (
+            record["calibrated"] and not isinstance(record.get("targets"), dict)):
+        raise ConfigError(f"{path} holds no calibration record ({{\"calibrated\": true, \"targets\": {{...}}}} or "
+                          "{\"calibrated\": false, \"why\": ...})")
+    return record

@@ -14,7 +14,7 @@ from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview import gallery
 from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
                                            parse_evaluation, parse_training)
-from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, known_heading
+from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, calibration_data, known_heading
 from geoloc.tasks.crossview.gallery_folder import check_target
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state
 from geoloc.tasks.crossview.task import CrossViewTask
@@ -93,7 +93,9 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
                               "dataset.random_heading=true (K candidate headings per query) evaluate without gallery.*")
         meta = {"ckpt": str(Path(run.job.ckpt).resolve()), "dataset": run.data.name,
                 "model_fingerprint": ckpt_io.weights_fingerprint(task.model)}
-        metrics = gallery.evaluate(task, trainer.engine, eval_data, run.batch_size, run.gallery, meta)
+        held_out = calibration_data(run.data, run.reader) if run.gallery.save else None
+        metrics = gallery.evaluate(task, trainer.engine, eval_data, run.batch_size, run.gallery, meta, held_out,
+                                   run.data.fov, run.run_dir)
     else:
         metrics = trainer.validate(task, task.val_dataloaders(eval_data, run.batch_size, trainer.engine))
     metrics["num_queries"] = len(eval_data)

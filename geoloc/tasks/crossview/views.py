@@ -116,6 +116,15 @@ def candidate_headings(steps: int) -> np.ndarray:
     return 360.0 * np.arange(int(steps)) / int(steps)
 
 
+def headings_around(heading: float, prior: float, steps: int) -> np.ndarray:
+    """The candidate headings of a search with a prior: heading + 360·k/steps for every integer k with
+    |360·k/steps| <= prior, in [0, 360), the given heading first. prior 0 (or below one step): the heading alone."""
+    step = 360.0 / candidate_headings(steps).shape[0]
+    reach = int(np.floor(prior / step + 1e-9))
+    offsets = sorted(range(-reach, reach + 1), key=lambda k: (abs(k), k))
+    return np.mod(float(heading) + step * np.array(offsets, np.float64), 360.0)
+
+
 def circular_error_deg(estimate, truth) -> np.ndarray:
     """|estimate - truth| on the circle, in [0, 180] degrees (elementwise)."""
     diff = np.mod(np.asarray(estimate, dtype=np.float64) - np.asarray(truth, dtype=np.float64), 360.0)

@@ -1,0 +1,100 @@
+"""Retrieval confidence: P(the top-1 reference is the query's positive), fitted when a gallery is saved.
+
+The rule (docs/confidence.md): the labelled queries are the train split's last `dataset.calibration_holdout`
+queries, which training never saw (datasets.calibration_data). Each is scored against the gallery's references
+plus its own positive where the gallery lacks it (a one-to-one split's train tiles are not in the test gallery), so
+the answers it fits face the gallery's distractors. "Right" is the scorer's rank rule: no reference strictly above
+the positive (R@1's hit). The features are the top-1 score and its margin over the second (calibration.py). The
+calibrator holds for the condition it was fitted in: the heading given (the held-out queries are encoded at
+their known heading) at the checkpoint's field of view.
+
+calibration.json (saved with the gallery) holds {"calibrated": true, "targets": {"top1": Calibrator}} or
+{"calibrated": false, "why": ...}; a second target (a refiner's "within_5m") is one more entry of "targets".
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from geoloc.data.relevance import Relevance
+from geoloc.eval.calibration import (Calibrator, coverage_accuracy, expected_calibration_error, fit_calibrator,
+                                     retrieval_features)
+from geoloc.eval.candidates import rank_candidates
+from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.scoring import rank
+
+TOP1 = "top1"
+NO_HOLDOUT = ("no labelled queries were kept out of training (the checkpoint was trained with "
+              "dataset.calibration_holdout=0): train with dataset.calibration_holdout=N (e.g. a quarter of the train "
+              "queries) and save the gallery again to have a calibrated confidence")
+
+
+def top1_answers(query: torch.Tensor, reference: torch.Tensor, positives) -> tuple[np.ndarray, np.ndarray]:
+    """(features (Q, 2), right (Q,) bool) of exact retrieval: query Q×D against reference N×D, query i's positive
+    reference positives[i]."""
+    relevance = Relevance.from_positives(positives, reference.shape[0])
+    found = rank(query, reference, relevance, top=2)
+    return retrieval_features(found.top_scores.numpy()), (found.ranks == 0).numpy()
+
+
+def index_answers(index: GalleryIndex, query: torch.Tensor, positives) -> tuple[np.ndarray, np.ndarray]:
+    """top1_answers from a gallery index: its stored vectors when exact, else its top-2 lists."""
+    if index.kind == "flat":
+        return top1_answers(query, index.vectors(), positives)
+    scores, rows = index.search(query, min(2, len(index)))
+    found = rank_candidates(scores, rows, Relevance.from_positives(positives, len(index)))
+    return retrieval_features(found.top_scores.numpy()), (found.ranks == 0).numpy()
+
+
+def with_positives(reference: torch.Tensor, paths: list, held_reference: torch.Tensor, held_paths: list,
+                   held_positives) -> tuple[torch.Tensor, np.ndarray]:
+    """(the gallery's references plus each held-out positive it lacks, the held-out queries' rows in it). A
+    held-out positive found in the gallery (the same file) keeps its gallery row."""
+    row_of = {Path(p): i for i, p in enumerate(paths)}
+    extra, rows = [], []
+    for j in np.asarray(held_positives):
+        path = Path(held_paths[j])
+        if path not in row_of:
+            row_of[path] = len(paths) + len(extra)
+            extra.append(int(j))
+        rows.append(row_of[path])
+    added = held_reference[torch.as_tensor(extra, dtype=torch.long)].to(reference.device)
+    return torch.cat([reference, added]), np.asarray(rows)
+
+
+def fit_top1(query: torch.Tensor, reference: torch.Tensor, positives, fov: float, rule: str) -> dict:
+    """calibration.json's record for held-out queries scored against `reference` (with_positives)."""
+    features, right = top1_answers(query, reference, positives)
+    if right.all() or not right.any():
+        return uncalibrated(f"the {len(right)} held-out queries were all {'right' if right.all() else 'wrong'}: "
+                            "no answer to learn the confidence from; keep more queries out of training")
+    calibrator = fit_calibrator(features, right, TOP1, condition={"heading": "given", "fov": float(fov)},
+                                rule=rule)
+    return {"calibrated": True, "targets": {TOP1: calibrator.to_json()}}
+
+
+def uncalibrated(why: str) -> dict:
+    return {"calibrated": False, "why": why}
+
+
+def calibrators(record: dict | None) -> dict[str, Calibrator]:
+    """{target: Calibrator} of a calibration.json record (None: a gallery saved without one: none)."""
+    if not record or not record.get("calibrated"):
+        return {}
+    return {target: Calibrator.from_json(entry, f"calibration.json target {target!r}")
+            for target, entry in record["targets"].items()}
+
+
+def confidence_report(calibrator: Calibrator, features: np.ndarray, right: np.ndarray,
+                      figure: Path | None = None) -> dict:
+    """{"ece_top1": ...} of the scored queries; with `figure`, their reliability and coverage-accuracy curves."""
+    probability = calibrator.probability(features)
+    ece = expected_calibration_error(probability, right)
+    if figure is not None:
+        from geoloc.eval.plots import confidence_figure
+
+        confidence_figure(figure, probability, right, ece, *coverage_accuracy(probability, right))
+    return {"ece_top1": ece}

@@ -79,10 +79,11 @@ def run_gallery(monkeypatch, tmp_path, descriptors, held: bool, **cfg):
     data = {"test": EvalData(test), "held": EvalData(held_split)}
     name = {id(v): k for k, v in data.items()}
     monkeypatch.setattr(crossview_gallery, "encode_split",
-                        lambda task, engine, d, batch_size, sides=("query", "reference"):
+                        lambda task, engine, d, batch_size, sides=("query", "reference"), rows=None:
                         dict(zip(("query", "reference"), descriptors[name[id(d)]])))
     engine = SimpleNamespace(device=torch.device("cpu"))
-    return crossview_gallery.evaluate(SimpleNamespace(), engine, data["test"], 4, GalleryConfig(**cfg), META,
+    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=descriptors["test"][1].shape[1]))  # what evaluate reads
+    return crossview_gallery.evaluate(task, engine, data["test"], 4, GalleryConfig(**cfg), META,
                                       data["held"] if held else None, 360.0, tmp_path / "run")
 
 

@@ -17,7 +17,8 @@ from geoloc.data.validate import check_files
 from geoloc.engine.sampling import item_rng, split_key
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
-from geoloc.tasks.crossview.transforms import align, align_query, align_reference, load_view, to_tensor
+from geoloc.tasks.crossview.transforms import (align, align_query, align_reference, decode_size, image_tensor,
+                                               jitter_draw, load_view)
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
@@ -58,10 +59,12 @@ def paths_to_check(split: RetrievalSplit) -> list[Path]:
 class CrossViewPairs(Dataset):
     """Training (and one-to-one validation) pairs: item i is query i with its positive reference.
 
-    Item: {"query": 3×Hq×Wq float (street, aligned), "reference": 3×Hr×Wr float (aerial), "index": i (position in
-    the split), "label": the positive reference's index (the place: queries of one place share it)}. Keys may be
-    ints or (index, epoch) pairs. `augment_seed` (the run's top-level `seed`) seeds the train-time augmentation
-    per (seed, epoch, index).
+    Item: {"query": 3×Hq×Wq uint8 (street, aligned), "reference": 3×Hr×Wr uint8 (aerial), "index": i (position in
+    the split), "label": the positive reference's index (the place: queries of one place share it)}, and in
+    training with dataset.color_jitter > 0 "query_jitter" / "reference_jitter": each image's jitter draws (4,)
+    float64 (transforms.jitter_draw). transforms.normalised turns a batch of them into the branches' float input,
+    on the device (CrossViewTask.on_after_batch_transfer). Keys may be ints or (index, epoch) pairs.
+    `augment_seed` (the run's top-level `seed`) seeds the train-time augmentation per (seed, epoch, index).
 
     `heading_search` (evaluation with dataset.random_heading): query i is seen at heading eval_heading(i) with
     dataset.fov, and item["query"] is its K×3×H×W candidate inputs (heading 360·k/K each, geoloc/tasks/crossview/views.py),
@@ -95,24 +98,27 @@ class CrossViewPairs(Dataset):
     def __getitem__(self, key) -> dict:
         index, _ = split_key(key)
         label = int(self.labels[index])
-        street = load_view(self.split.queries[index], self.split.query_view)
-        aerial = read_rgb(self.split.references[label])
+        view = self.split.query_view
+        street = load_view(self.split.queries[index], view, decode_size(self.cfg, view))
+        aerial = read_rgb(self.split.references[label], decode_size(self.cfg, "aerial"))
         if self.heading_search:
             heading = eval_heading(index)
-            view = crop_view(street, self.cfg.fov, heading)
-            candidates, _ = query_candidates(view, self.cfg, self.split.query_view, self.cfg.fov,
+            candidates, _ = query_candidates(crop_view(street, self.cfg.fov, heading), self.cfg, view, self.cfg.fov,
                                              self.cfg.heading_steps)
-            return {"query": candidates, "reference": to_tensor(align_reference(aerial, self.cfg)), "index": index,
-                    "label": label, "heading": heading}
+            return {"query": candidates, "reference": image_tensor(align_reference(aerial, self.cfg)),
+                    "index": index, "label": label, "heading": heading}
         rng = item_rng(self.augment_seed, key) if self.train else None
-        query, reference = align(street, aerial, self.cfg, rng, self.split.query_view)
-        return {"query": to_tensor(query, rng, self.cfg.color_jitter),
-                "reference": to_tensor(reference, rng, self.cfg.color_jitter), "index": index, "label": label}
+        query, reference = align(street, aerial, self.cfg, rng, view)
+        item = {"query": image_tensor(query), "reference": image_tensor(reference), "index": index, "label": label}
+        if rng is not None and self.cfg.color_jitter > 0:  # the query's draws, then the reference's
+            item["query_jitter"] = jitter_draw(query, rng, self.cfg.color_jitter)
+            item["reference_jitter"] = jitter_draw(reference, rng, self.cfg.color_jitter)
+        return item
 
 
 class ViewImages(Dataset):
-    """One side of an evaluation split, for galleries that are not one-to-one: item {"image": 3×H×W float,
-    "index": i}. `view` is "aerial" for aerial images (the reference branch's input) or the query view of the
+    """One side of an evaluation split, for galleries that are not one-to-one: item {"image": 3×H×W uint8,
+    "index": i} (normalised on the device, as CrossViewPairs' images). `view` is "aerial" for aerial images (the reference branch's input) or the query view of the
     split's ground-side images ("panorama", "sphere", "image")."""
 
     def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig):
@@ -123,14 +129,15 @@ class ViewImages(Dataset):
 
     def __getitem__(self, key) -> dict:
         index, _ = split_key(key)
+        size = decode_size(self.cfg, self.view)
         if self.view == "aerial":
-            image = align_reference(read_rgb(self.paths[index]), self.cfg)
+            image = align_reference(read_rgb(self.paths[index], size), self.cfg)
         else:
-            street = load_view(self.paths[index], self.view)
+            street = load_view(self.paths[index], self.view, size)
             if self.view != "image":
                 street = north_window(street, self.cfg.fov, 0.0)
             image = align_query(street, self.cfg, self.view)
-        return {"image": to_tensor(image), "index": index}
+        return {"image": image_tensor(image), "index": index}
 
 
 @dataclass

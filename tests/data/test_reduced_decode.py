@@ -91,11 +91,12 @@ def test_a_damaged_jpeg_is_refused_at_reduced_scale(damage, why):
 
 
 def test_reduced_decoding_applies_to_resized_aerials_and_photos_only():
-    cfg = CrossViewDataConfig(aerial_size=96)
+    cfg = CrossViewDataConfig(aerial_size=96, reduced_decode=True)
     assert decode_size(cfg, "aerial") == decode_size(cfg, "image") == (96, 96)
     assert decode_size(cfg, "panorama") is None and decode_size(cfg, "sphere") is None  # polar geometry, roll, fov
-    assert decode_size(CrossViewDataConfig(alignment="polar"), "aerial") is None  # sampled by the polar transform
-    assert decode_size(CrossViewDataConfig(reduced_decode=False), "aerial") is None
+    polar = CrossViewDataConfig(alignment="polar", reduced_decode=True)
+    assert decode_size(polar, "aerial") is None  # sampled by the polar transform
+    assert decode_size(CrossViewDataConfig(), "aerial") is None  # off by default: older checkpoints decode as before
 
 
 def spy_on_decodes(monkeypatch) -> list[dict]:
@@ -113,7 +114,7 @@ def spy_on_decodes(monkeypatch) -> list[dict]:
 def test_the_data_module_reads_aerials_reduced_and_checks_files_at_full_size(tmp_path, monkeypatch):
     root = write_cvusa(tmp_path / "cvusa", n_train=3, n_val=2, aerial=128, pano=(32, 128))
     calls = spy_on_decodes(monkeypatch)
-    cfg = CrossViewDataConfig(name="cvusa", root=str(root), aerial_size=32, pano_size=[16, 64])
+    cfg = CrossViewDataConfig(name="cvusa", root=str(root), aerial_size=32, pano_size=[16, 64], reduced_decode=True)
     split = read_split(cfg, {"name": "cvusa"}, "train")
     assert len(calls) == 6 and all(kw == {} for kw in calls)  # the start-up check: every file at full size
     del calls[:]

@@ -70,7 +70,7 @@ def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
     optimizer = task.configure_optimizers()[0][0]
     model = torch.compile(task) if args.compile else task
     items = [train_set[(i % len(train_set), 0)] for i in range(args.batch)]
-    batch = trainer.engine.to_device(default_collate(items))
+    batch = trainer.engine.to_device(default_collate(items), task)
     times = []
     for i in range(args.warmup + args.steps):
         if trainer.device.type == "cuda":

@@ -9,6 +9,10 @@ file", with no file name. So completeness is checked on the bytes, before decodi
 Then the whole image is decoded at full size, strictly (`decode_rgb`: libjpeg-turbo in strict mode for JPEGs, OpenCV
 otherwise; both release the GIL, so a thread pool runs decodes in parallel).
 
+Training reads (`decode_rgb` with `min_size`) may decode a JPEG at 1/2, 1/4 or 1/8 scale (libjpeg's DCT scaling,
+which skips most of the inverse DCT and colour conversion) when the transforms resize it to no more than that; the
+same byte checks and the same strict decoder run on every read, so a reduced decode refuses what a full one does.
+
 Files that passed are remembered by (size, mtime) in `$GEOLOC_CACHE/checked/<hash of root + split>.json`
 (default `~/.cache/geoloc/checked/`), never inside the dataset root, which may be read-only: a second start only
 stats the files. At training time `require_complete` checks the cheap part (the tail bytes) on every read.
@@ -96,17 +100,34 @@ def content_problem(data: bytes) -> str | None:
     return None
 
 
-def _decoded(data: bytes) -> tuple[np.ndarray | None, str | None]:
+def jpeg_reduction(height: int, width: int, min_size: tuple[int, int] | None) -> int:
+    """The largest of 8, 4, 2 (else 1) by which libjpeg may scale an H×W JPEG down so that it stays at least
+    `min_size` (H, W): its scaled side is ceil(side / factor), so the transforms never upsample more than at full
+    size."""
+    if min_size is None:
+        return 1
+    return next((f for f in (8, 4, 2) if -(-height // f) >= min_size[0] and -(-width // f) >= min_size[1]), 1)
+
+
+def _decoded(data: bytes, min_size: tuple[int, int] | None = None) -> tuple[np.ndarray | None, str | None]:
     """(H×W×3 uint8 RGB, None) for complete image bytes, else (None, what is wrong). JPEGs are decoded by
     libjpeg-turbo in strict mode (simplejpeg), which refuses what libjpeg otherwise only warns about and fills
     with grey: a scan cut short with an end marker appended, or a header that promises more pixels than the data
-    holds. Other formats go through OpenCV, whose PNG reader refuses a short or corrupt image stream."""
+    holds. Other formats go through OpenCV, whose PNG reader refuses a short or corrupt image stream.
+
+    min_size: (H, W) a JPEG may be decoded down to (`jpeg_reduction`); other formats are decoded at full size."""
     problem = content_problem(data)
     if problem:
         return None, problem
     if data.startswith(JPEG_SOI):
         try:
-            return simplejpeg.decode_jpeg(data, colorspace="RGB", strict=True), None
+            scale = {}
+            if min_size is not None:
+                height, width = simplejpeg.decode_jpeg_header(data)[:2]
+                factor = jpeg_reduction(height, width, min_size)
+                if factor > 1:  # the smallest scale libjpeg offers that keeps ceil(side / factor): 1/factor itself
+                    scale = {"min_height": -(-height // factor), "min_width": -(-width // factor)}
+            return simplejpeg.decode_jpeg(data, colorspace="RGB", strict=True, **scale), None
         except ValueError as err:
             return None, f"corrupt JPEG: {err} (libjpeg would fill the rest of the image with grey)"
     try:
@@ -123,10 +144,12 @@ def _decoded(data: bytes) -> tuple[np.ndarray | None, str | None]:
 REFETCH = "Re-download or re-extract it (the start-up check dataset.check_files=decode lists every such file)."
 
 
-def decode_rgb(data: bytes, name: str | Path, fix: str = REFETCH) -> np.ndarray:
+def decode_rgb(data: bytes, name: str | Path, fix: str = REFETCH,
+               min_size: tuple[int, int] | None = None) -> np.ndarray:
     """Image bytes as H×W×3 uint8 RGB, complete or refused: DatasetFileError naming `name`, what is wrong and
-    `fix`, what to do (a dataset file's by default)."""
-    image, problem = _decoded(data)
+    `fix`, what to do (a dataset file's by default). min_size: the (H, W) a JPEG may be decoded down to, by a
+    factor of 2, 4 or 8 (`jpeg_reduction`); None: full size."""
+    image, problem = _decoded(data, min_size)
     if problem:
         raise DatasetFileError(f"{name}: {problem}. {fix}")
     return image

@@ -27,6 +27,12 @@ class Task(nn.Module):
         """One step on one batch. Return {"loss": scalar tensor, **values to log}."""
         raise NotImplementedError
 
+    def on_after_batch_transfer(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """The batch just moved to the device, before the Trainer makes its 4-D float tensors channels_last: the
+        place for batched work on the device, e.g. normalising uint8 images that data workers returned (Lightning's
+        hook of the same name). Runs on every batch the engine moves: training, validation, engine.to_device."""
+        return batch
+
     def on_train_batch_end(self, outputs: dict[str, Any]) -> None:
         """Called after the optimizer step (e.g. to push to a queue)."""
 

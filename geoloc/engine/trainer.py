@@ -102,8 +102,9 @@ class Engine:
         """A DataLoader as the trainer builds them (seeded, DDP-sharded, workers from trainer config)."""
         return self._t.loader(dataset, batch_size, train, batch_sampler)
 
-    def to_device(self, batch: dict) -> dict:
-        return self._t._to_device(batch)
+    def to_device(self, batch: dict, task: Task) -> dict:
+        """`batch` on the device as the trainer moves it: `task.on_after_batch_transfer`, then channels_last."""
+        return self._t._to_device(batch, task)
 
     def autocast(self):
         return self._t.autocast()
@@ -172,14 +173,16 @@ class Trainer:
         return DataLoader(dataset, batch_size=batch_size, sampler=sampler,
                           drop_last=train and len(sampler) >= 2 * batch_size, **common)
 
-    def _to_device(self, batch: dict) -> dict:
-        out = {}
-        for k, v in batch.items():
-            if isinstance(v, torch.Tensor):
-                v = v.to(self.device, non_blocking=True)
-                if self.cfg.channels_last and v.ndim == 4 and v.is_floating_point():
-                    v = v.contiguous(memory_format=torch.channels_last)
-            out[k] = v
+    def _to_device(self, batch: dict, task: Task) -> dict:
+        """Move, then the task's hook (which may turn uint8 images into float ones), then channels_last: it
+        applies to floating-point 4-D tensors only, so a hook running after it would leave them contiguous."""
+        moved = {k: v.to(self.device, non_blocking=True) if isinstance(v, torch.Tensor) else v
+                 for k, v in batch.items()}
+        out = task.on_after_batch_transfer(moved)
+        if self.cfg.channels_last:
+            out = {k: v.contiguous(memory_format=torch.channels_last)
+                   if isinstance(v, torch.Tensor) and v.ndim == 4 and v.is_floating_point() else v
+                   for k, v in out.items()}
         return out
 
     # ---- checkpoints ---------------------------------------------------------------------------------------
@@ -289,7 +292,7 @@ class Trainer:
         for i, batch in enumerate(loader):
             if i >= n_batches:
                 break
-            batch = self._to_device(batch)
+            batch = self._to_device(batch, task)
             if task.automatic_optimization:
                 with self.autocast():
                     out = model(batch, self.engine)
@@ -342,7 +345,7 @@ class Trainer:
         chunks: dict[str, list[torch.Tensor]] = {}
         for batch in tqdm(loader, desc=f"validate {name or ''}".strip(), leave=False, dynamic_ncols=True,
                           disable=not (self.cfg.progress and dist.is_main())):
-            batch = self._to_device(batch)
+            batch = self._to_device(batch, task)
             with self.autocast():
                 out = task.validation_step(batch) if name is None else task.validation_step(batch, name)
             for k, v in out.items():

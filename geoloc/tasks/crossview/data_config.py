@@ -38,6 +38,10 @@ class CrossViewDataConfig:
     random_heading: bool = False  # train: the view at a random bearing; eval: unknown heading, searched
     heading_steps: int = 36  # eval with random_heading: candidate headings 360·k/K per query (docs/heading.md)
     check_files: str = "decode"  # decode | exists | off
+    # decode JPEG aerials / photos at 1/2-1/8 scale when they are resized to no less (transforms.decode_size); off
+    # by default, so checkpoints from before it and the embedded default decode as they were trained; the real
+    # datasets' yaml files turn it on
+    reduced_decode: bool = False
     max_train: int = 0  # 0 = all; for quick runs (one-to-one splits keep their pairs; others cut the queries)
     max_val: int = 0
     calibration_holdout: int = 0  # the train split's last N queries: kept out of training, they fit the confidence

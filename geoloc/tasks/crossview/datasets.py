@@ -20,8 +20,8 @@ from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
 import geoloc.tasks.crossview.view_pairs  # noqa: F401  (the query_views kind that build() builds)
 from geoloc.tasks.crossview.refine import RefineConfig, eval_offset, refine_item
-from geoloc.tasks.crossview.transforms import (align, align_query, align_reference, augment, load_view, resize,
-                                                to_tensor)
+from geoloc.tasks.crossview.transforms import (align, align_query, align_reference, augment, decode_size,
+                                                image_tensor, jitter_draw, load_view, resize, to_tensor)
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
@@ -83,10 +83,12 @@ def paths_to_check(split: RetrievalSplit) -> list[Path]:
 class CrossViewPairs(Dataset):
     """Training (and one-to-one validation) pairs: item i is query i with its positive reference.
 
-    Item: {"query": 3×Hq×Wq float (street, aligned), "reference": 3×Hr×Wr float (aerial), "index": i (position in
-    the split), "label": the positive reference's index (the place: queries of one place share it)}. Keys may be
-    ints or (index, epoch) pairs. `augment_seed` (the run's top-level `seed`) seeds the train-time augmentation
-    per (seed, epoch, index).
+    Item: {"query": 3×Hq×Wq uint8 (street, aligned), "reference": 3×Hr×Wr uint8 (aerial), "index": i (position in
+    the split), "label": the positive reference's index (the place: queries of one place share it)}, and in
+    training with dataset.color_jitter > 0 "query_jitter" / "reference_jitter": each image's jitter draws (4,)
+    float64 (transforms.jitter_draw). transforms.normalised turns a batch of them into the branches' float input,
+    on the device (CrossViewTask.on_after_batch_transfer). Keys may be ints or (index, epoch) pairs.
+    `augment_seed` (the run's top-level `seed`) seeds the train-time augmentation per (seed, epoch, index).
 
     `heading_search` (evaluation with dataset.random_heading): query i is seen at heading eval_heading(i) with
     dataset.fov, and item["query"] is its K×3×H×W candidate inputs (heading 360·k/K each, geoloc/tasks/crossview/views.py),
@@ -126,47 +128,56 @@ class CrossViewPairs(Dataset):
     def __getitem__(self, key) -> dict:
         index, _ = split_key(key)
         label = int(self.labels[index])
-        street = load_view(self.split.queries[index], self.split.query_view)
-        aerial = read_rgb(self.split.references[label])
+        view = self.split.query_view
+        street = load_view(self.split.queries[index], view, decode_size(self.cfg, view))
+        aerial = read_rgb(self.split.references[label], decode_size(self.cfg, "aerial"))
         if self.heading_search:
             heading = eval_heading(index)
-            view = crop_view(street, self.cfg.fov, heading)
-            candidates, _ = query_candidates(view, self.cfg, self.split.query_view, self.cfg.fov,
+            candidates, _ = query_candidates(crop_view(street, self.cfg.fov, heading), self.cfg, view, self.cfg.fov,
                                              self.cfg.heading_steps)
-            return {"query": candidates, "reference": to_tensor(align_reference(aerial, self.cfg)), "index": index,
-                    "label": label, "heading": heading}
+            return {"query": candidates, "reference": image_tensor(align_reference(aerial, self.cfg)),
+                    "index": index, "label": label, "heading": heading}
         rng = item_rng(self.augment_seed, key) if self.train else None
         if self.views is not None:
             return self._with_views(street, aerial, rng, index, label)
         if self.refine is not None:
             return self._refine_item(index, label, street, rng)
-        query, reference = align(street, aerial, self.cfg, rng, self.split.query_view)
-        return {"query": to_tensor(query, rng, self.cfg.color_jitter),
-                "reference": to_tensor(reference, rng, self.cfg.color_jitter), "index": index, "label": label}
+        query, reference = align(street, aerial, self.cfg, rng, view)
+        return self._images({"query": query, "reference": reference}, rng, index=index, label=label)
+
+    def _images(self, images: dict, rng, **item) -> dict:
+        """`item` with `images` (H×W×3 uint8, or lists of them, stacked) as uint8 tensors, and, in training with
+        dataset.color_jitter, each image's jitter draw under `<key>_jitter`, drawn in the order given."""
+        for key, image in images.items():
+            item[key] = (torch.stack([image_tensor(i) for i in image]) if isinstance(image, list)
+                         else image_tensor(image))
+        if rng is not None and self.cfg.color_jitter > 0:
+            for key, image in images.items():
+                item[f"{key}_jitter"] = (
+                    np.stack([jitter_draw(i, rng, self.cfg.color_jitter) for i in image]) if isinstance(image, list)
+                    else jitter_draw(image, rng, self.cfg.color_jitter))
+        return item
 
     def _with_views(self, street, aerial, rng, index: int, label: int) -> dict:
         street, aerial = augment(street, aerial, self.cfg, rng)
         main, extras = self.views(street, rng)
-        view, jitter = self.split.query_view, self.cfg.color_jitter
-        return {"query": to_tensor(align_query(main, self.cfg, view), rng, jitter),
-                "reference": to_tensor(align_reference(aerial, self.cfg), rng, jitter), "index": index,
-                "label": label,
-                "query_views": torch.stack([to_tensor(align_query(v, self.cfg, view), rng, jitter) for v in extras])}
+        view = self.split.query_view
+        return self._images({"query": align_query(main, self.cfg, view), "reference": align_reference(aerial, self.cfg),
+                             "query_views": [align_query(v, self.cfg, view) for v in extras]}, rng,
+                            index=index, label=label)
 
     def _refine_item(self, index: int, label: int, street: np.ndarray, rng) -> dict:
         """The pair as the refiner sees it (refine.refine_item), with the retrieval inputs of the same view."""
         item = refine_item(self.split, index, street, self.cfg, self.refine, rng)
-        jitter = self.cfg.color_jitter if rng is not None else 0.0
         query = align_query(item.pop("street"), self.cfg, self.split.query_view)
         reference = align_reference(item.pop("aerial"), self.cfg)
-        return {"query": to_tensor(query, rng, jitter), "reference": to_tensor(reference, rng, jitter),
-                "index": index, "label": label, **item}
+        return self._images({"query": query, "reference": reference}, rng, index=index, label=label, **item)
 
 
 class ViewImages(Dataset):
-    """One side of an evaluation split, for galleries that are not one-to-one: item {"image": 3×H×W float,
-    "index": i}. `view` is "aerial" for aerial images (the reference branch's input) or the query view of the
-    split's ground-side images ("panorama", "sphere", "image").
+    """One side of an evaluation split, for galleries that are not one-to-one: item {"image": 3×H×W uint8,
+    "index": i} (normalised on the device, as CrossViewPairs' images). `view` is "aerial" for aerial images (the
+    reference branch's input) or the query view of the split's ground-side images ("panorama", "sphere", "image").
 
     `heading_search` (ground-side panoramas under dataset.random_heading): image i is seen at heading
     eval_heading(i) with dataset.fov, item["image"] is its K×3×H×W candidate inputs and item["heading"] the true
@@ -183,10 +194,11 @@ class ViewImages(Dataset):
 
     def __getitem__(self, key) -> dict:
         index, _ = split_key(key)
+        size = decode_size(self.cfg, self.view)
         if self.view == "aerial":
-            image = align_reference(read_rgb(self.paths[index]), self.cfg)
+            image = align_reference(read_rgb(self.paths[index], size), self.cfg)
         else:
-            street = load_view(self.paths[index], self.view)
+            street = load_view(self.paths[index], self.view, size)
             if self.heading_search:
                 heading = eval_heading(index)
                 candidates, _ = query_candidates(crop_view(street, self.cfg.fov, heading), self.cfg, self.view,
@@ -195,7 +207,7 @@ class ViewImages(Dataset):
             if self.view != "image":
                 street = north_window(street, self.cfg.fov, 0.0)
             image = align_query(street, self.cfg, self.view)
-        item = {"image": to_tensor(image), "index": index}
+        item = {"image": image_tensor(image), "index": index}
         if self.refine is not None:
             item.update(self._refine_input(index))
         return item

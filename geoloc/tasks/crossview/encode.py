@@ -32,7 +32,7 @@ def _encoded(task, engine, loader, describe) -> dict:
     task.eval()
     parts: dict[str, list[torch.Tensor]] = {"index": []}
     for batch in loader:
-        batch = engine.to_device(batch)
+        batch = engine.to_device(batch, task)
         with engine.autocast():
             for key, value in describe(batch).items():
                 parts.setdefault(key, []).append(value.float())

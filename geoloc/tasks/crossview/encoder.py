@@ -129,7 +129,9 @@ class CrossViewEncoder:
         return horizon_band(image) if view == "sphere" and fov == 360.0 else image
 
     def aerial_input(self, tile: np.ndarray) -> torch.Tensor:
-        """tile: H×W×3 uint8 RGB aerial image -> 1×3×H×W reference-branch input on the CPU."""
+        """tile: H×W×3 uint8 RGB aerial image -> 1×3×H×W reference-branch input on the CPU. The data module decodes
+        a JPEG tile at reduced scale where its resize allows (transforms.decode_size); a tile decoded the same way
+        (geoloc.data.io.read_rgb(path, decode_size(self.data, "aerial"))) gives the gallery's input exactly."""
         return to_tensor(align_reference(tile, self.data))[None]
 
     @torch.no_grad()

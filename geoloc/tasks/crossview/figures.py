@@ -23,12 +23,12 @@ from geoloc.eval.plots import grid, overlay, save_png  # noqa: E402
 from geoloc.data.relevance import Relevance  # noqa: E402
 from geoloc.eval.recall import recall_summary  # noqa: E402
 from geoloc.eval.scoring import rank, top_k  # noqa: E402
-from geoloc.tasks.crossview.transforms import IMAGENET_MEAN, IMAGENET_STD  # noqa: E402
+from geoloc.tasks.crossview.transforms import normalise  # noqa: E402
+
 
 def to_uint8(x: torch.Tensor) -> np.ndarray:
-    """3×H×W normalised tensor → H×W×3 uint8."""
-    img = x.detach().float().cpu().numpy().transpose(1, 2, 0) * IMAGENET_STD + IMAGENET_MEAN
-    return (np.clip(img, 0, 1) * 255).astype(np.uint8)
+    """3×H×W uint8 image (a data module item's) → H×W×3 uint8."""
+    return np.ascontiguousarray(x.permute(1, 2, 0).cpu().numpy())
 
 
 def _frame(img: np.ndarray, color: tuple[int, int, int], t: int = 4) -> np.ndarray:
@@ -88,7 +88,7 @@ def crossview_figures(task, data, run_dir: str | Path, device: torch.device, bat
         out = []
         for start in range(0, n, batch_size):
             batch = torch.stack([image(i) for i in range(start, min(start + batch_size, n))]).to(device)
-            out.append(branch(batch).float().cpu())
+            out.append(branch(normalise(batch)).float().cpu())
         return torch.cat(out)
 
     query, reference = encode(query_branch, query_image, n_query), encode(reference_branch, reference_image, n_reference)
@@ -101,8 +101,8 @@ def crossview_figures(task, data, run_dir: str | Path, device: torch.device, bat
     rows = []
     for i in picks:
         q, r = query_image(i), reference_image(positive(i))
-        _, q_mask = query_branch(q[None].to(device), return_attention=True)
-        _, r_mask = reference_branch(r[None].to(device), return_attention=True)
+        _, q_mask = query_branch(normalise(q[None].to(device)), return_attention=True)
+        _, r_mask = reference_branch(normalise(r[None].to(device)), return_attention=True)
         q_img, r_img = to_uint8(q), to_uint8(r)
         rows.append([q_img, overlay(q_img, q_mask[0]), r_img, overlay(r_img, r_mask[0])])
     paths["attention"] = run_dir / "attention.png"

@@ -23,7 +23,7 @@ from geoloc.data.relevance import Relevance
 from geoloc.eval.keys import KeySet
 from geoloc.eval.recall import check_ks, recall_keys, recall_summary
 from geoloc.eval.scoring import rank
-from geoloc.tasks.crossview.transforms import align_query, to_tensor
+from geoloc.tasks.crossview.transforms import align_query, image_tensor, normalise
 from geoloc.tasks.crossview.views import candidate_headings, check_fov, circular_error_deg, view_canvases
 
 HEADING_WITHIN_DEG = (10, 20)  # shares of queries within these errors (DSM reports such orientation accuracies)
@@ -33,23 +33,29 @@ HEADING_KEYS = KeySet({"heading_median_deg": 180.0, "heading_mean_deg": 180.0,
 
 def query_candidates(street: np.ndarray, cfg, view: str, fov_deg: float,
                      steps: int) -> tuple[torch.Tensor, np.ndarray]:
-    """One street view of unknown heading → (K×3×H×W query-branch inputs, (K,) candidate headings in degrees).
+    """One street view of unknown heading → (K×3×H×W uint8 query-branch images, as a data worker returns them,
+    (K,) candidate headings in degrees).
 
-    Candidate k is the view at heading 360·k/K (`query_inputs`)."""
+    Candidate k is the view at heading 360·k/K (`query_images`)."""
     headings = candidate_headings(steps)
-    return query_inputs(street, cfg, view, fov_deg, headings), headings
+    return query_images(street, cfg, view, fov_deg, headings), headings
 
 
-def query_inputs(street: np.ndarray, cfg, view: str, fov_deg: float, headings) -> torch.Tensor:
-    """len(headings)×3×H×W query-branch inputs: the view placed on the 360° canvas at each heading (degrees),
-    aligned as the dataset config `cfg` (a CrossViewDataConfig) says and normalised like `to_tensor`. `view` is
-    the split's query view ("panorama", or "sphere" already cut to its horizon band by load_view)."""
+def query_images(street: np.ndarray, cfg, view: str, fov_deg: float, headings) -> torch.Tensor:
+    """len(headings)×3×H×W uint8 query-branch images: the view placed on the 360° canvas at each heading (degrees),
+    aligned as the dataset config `cfg` (a CrossViewDataConfig) says. `view` is the split's query view
+    ("panorama", or "sphere" already cut to its horizon band by load_view)."""
     if view not in ("panorama", "sphere"):
         raise ConfigError(f"a heading search needs panorama-like queries (view 'panorama' or 'sphere'), got view "
                           f"{view!r}: photos (e.g. drone views) have no bearing geometry")
     fov = check_fov(fov_deg)
-    return torch.stack([to_tensor(align_query(canvas, cfg, view, wrapped=True))
+    return torch.stack([image_tensor(align_query(canvas, cfg, view, wrapped=True))
                         for canvas in view_canvases(street, fov, headings)])
+
+
+def query_inputs(street: np.ndarray, cfg, view: str, fov_deg: float, headings) -> torch.Tensor:
+    """`query_images` normalised (transforms.normalise): the float query-branch inputs the apps encode."""
+    return normalise(query_images(street, cfg, view, fov_deg, headings))
 
 
 def heading_plan(ks: Iterable[int] = (1, 5, 10)) -> list:

@@ -11,7 +11,7 @@ The two branches take fixed H×W:
 from __future__ import annotations
 
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.transforms import IMAGENET_MEAN, IMAGENET_STD
+from geoloc.tasks.crossview.transforms import IMAGENET_MEAN, IMAGENET_STD, decode_size
 
 GROUND_VIEWS = ("panorama", "sphere", "image")  # what the query branch can take (RetrievalSplit.query_view)
 
@@ -30,7 +30,7 @@ def query_input(cfg: CrossViewDataConfig, view: str) -> tuple[tuple[int, int], l
     """((H, W), geometric steps) of the query branch's input, as geoloc.tasks.crossview.transforms.align_query makes it."""
     s = cfg.aerial_size
     if view == "image":
-        return (s, s), [f"resize to {s}x{s} (cv2.INTER_AREA)"]
+        return (s, s), [*decoded(cfg, view), f"resize to {s}x{s} (cv2.INTER_AREA)"]
     steps = [NORTH] + ([SPHERE_CROP] if view == "sphere" else [])
     if cfg.alignment == "ipt":
         ipt = f"inverse polar transform to {s}x{s}: geoloc.data.polar.street_to_aerial(img, ({s}, {s}))"
@@ -45,7 +45,16 @@ def reference_input(cfg: CrossViewDataConfig) -> tuple[tuple[int, int], list[str
         h, w = cfg.pano_size
         return (h, w), [f"polar transform to {h}x{w}: geoloc.data.polar.aerial_to_polar(img, ({h}, {w}))"]
     s = cfg.aerial_size
-    return (s, s), [f"resize to {s}x{s} (cv2.INTER_AREA)"]
+    return (s, s), [*decoded(cfg, "aerial"), f"resize to {s}x{s} (cv2.INTER_AREA)"]
+
+
+def decoded(cfg: CrossViewDataConfig, view: str) -> list[str]:
+    """The decode step of an image of `view`, where it is not a plain full-size decode (transforms.decode_size)."""
+    size = decode_size(cfg, view)
+    if size is None:
+        return []
+    return [f"a JPEG is decoded at the smallest of 1/8, 1/4, 1/2 scale whose sides stay >= {size[0]}x{size[1]} "
+            "(libjpeg DCT scaling: cv2.IMREAD_REDUCED_COLOR_<f>, PIL's Image.draft); other images at full size"]
 
 
 def normalisation() -> dict:

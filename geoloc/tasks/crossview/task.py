@@ -25,6 +25,7 @@ from geoloc.eval.descriptors import check_descriptors
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
+from geoloc.tasks.crossview.transforms import normalised
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 from geoloc.models.refiners import check_refiner
 from geoloc.tasks.crossview.refine import RefineConfig, fine_metrics
@@ -105,6 +106,11 @@ class CrossViewTask(Task):
 
             desc = encode(self, engine, self._descriptor_loader)
             self.sampler.set_descriptors(desc["query"], desc["reference"])
+
+    def on_after_batch_transfer(self, batch):
+        """The data module's uint8 images (and their colour jitter draws) → the branches' float input, batched on
+        the device (transforms.normalised)."""
+        return normalised(batch)
 
     def training_step(self, batch, engine):
         if self.refine is None:

@@ -1,6 +1,12 @@
 """The transforms every cross-view dataset shares: decoding a view, the alignment switch of the paper's ablation,
 the joint flip / rotation augmentation, and the tensor encoding.
 
+The tensor encoding is split in two so that data workers stay at the decode limit: a worker returns each image as
+3×H×W uint8 (`image_tensor`) with its colour jitter's random draws (`jitter_draw`), and the task normalises whole
+batches on the training device (`normalise`, called by CrossViewTask.on_after_batch_transfer). Both halves together
+give, bit for bit, the float32 ImageNet normalisation of numpy's `(x / 255 - mean) / std` (and the jitter's float64
+arithmetic), so augmentation stays keyed on (seed, epoch, index).
+
 alignment = "ipt"   street panorama → aerial-like image (the paper's inverse polar transform); aerial as is.
 alignment = "polar" aerial → street-like polar image (SAFA); panorama resized to the same size.
 alignment = "none"  no geometric alignment (the "w/o IPT" row): panorama and aerial only resized.
@@ -30,10 +36,24 @@ IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 
+# uint8 value v -> v / 255 in float32, as numpy divides a float32 image by 255.0
+_UNIT = np.arange(256, dtype=np.float32) / 255.0
 
-def load_view(path: Path, view: str) -> np.ndarray:
-    street = read_rgb(path)
+
+def load_view(path: Path, view: str, min_size: tuple[int, int] | None = None) -> np.ndarray:
+    """min_size: decode a JPEG at a reduced scale no smaller than this H×W (`decode_size`); None: full size."""
+    street = read_rgb(path, min_size)
     return horizon_band(street) if view == "sphere" else street
+
+
+def decode_size(cfg: CrossViewDataConfig, view: str) -> tuple[int, int] | None:
+    """The H×W an image of `view` may be decoded down to (JPEG DCT scaling, geoloc.data.validate.decode_rgb): the
+    size the transforms resize it to, where a resize is all that changes its geometry (aerial tiles outside polar
+    alignment, photos). None: full size (panoramas go through the polar transforms, the column roll and the field of
+    view at their own resolution; dataset.reduced_decode=false)."""
+    if cfg.reduced_decode and (view == "image" or (view == "aerial" and cfg.alignment != "polar")):
+        return cfg.aerial_size, cfg.aerial_size
+    return None
 
 
 def horizon_band(sphere: np.ndarray) -> np.ndarray:
@@ -89,14 +109,17 @@ def flip_rotate(street: np.ndarray, aerial: np.ndarray, quarter_turns: int, flip
     maps bearing b to -b, i.e. column j to column -j (mod W); turning the aerial clockwise by 90° makes column j
     show what column j - W/4 showed.
     """
-    w = street.shape[1]
-    if flip:
-        aerial = aerial[:, ::-1]
-        street = street[:, (-np.arange(w)) % w]
-    for _ in range(quarter_turns):
-        aerial = cv2.rotate(np.ascontiguousarray(aerial), cv2.ROTATE_90_CLOCKWISE)
-        street = np.roll(street, w // 4, axis=1)
+    turns, shift = quarter_turns % 4, (quarter_turns % 4) * (street.shape[1] // 4)
+    if flip:  # column j <- column -j (mod W): the mirrored columns (cv2.flip) rolled by one
+        aerial, street, shift = cv2.flip(aerial, 1), cv2.flip(street, 1), shift + 1
+    if turns:  # k turns at once: one rotation, and one roll of the panorama by k·(W // 4) (with the flip's)
+        aerial = cv2.rotate(np.ascontiguousarray(aerial), _CLOCKWISE_TURNS[turns])
+    if shift:
+        street = np.roll(street, shift, axis=1)
     return np.ascontiguousarray(street), np.ascontiguousarray(aerial)
+
+
+_CLOCKWISE_TURNS = {1: cv2.ROTATE_90_CLOCKWISE, 2: cv2.ROTATE_180, 3: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
 
 def resize(img: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -105,15 +128,55 @@ def resize(img: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     return cv2.resize(img, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
 
 
-def to_tensor(img: np.ndarray, rng: np.random.Generator | None = None, jitter: float = 0.0) -> torch.Tensor:
-    """HxWx3 uint8 → 3xHxW float, ImageNet-normalised, with optional photometric jitter."""
-    x = img.astype(np.float32) / 255.0
-    if rng is not None and jitter > 0:
-        b, c, s = rng.uniform(1 - jitter, 1 + jitter, size=3)
-        x = x * b
-        mean = x.mean()
-        x = (x - mean) * c + mean
-        gray = x.mean(axis=2, keepdims=True)
-        x = np.clip((x - gray) * s + gray, 0.0, 1.0)
-    x = (x - IMAGENET_MEAN) / IMAGENET_STD
-    return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1), dtype=np.float32))
+def to_tensor(img: np.ndarray) -> torch.Tensor:
+    """H×W×3 uint8 → 3×H×W float32, ImageNet-normalised (what the apps feed a branch)."""
+    return normalise(image_tensor(img))
+
+
+def image_tensor(img: np.ndarray) -> torch.Tensor:
+    """H×W×3 uint8 → 3×H×W uint8 (a view of `img` where it is contiguous): what a data worker returns."""
+    return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)
+
+
+def jitter_draw(img: np.ndarray, rng: np.random.Generator, jitter: float) -> np.ndarray:
+    """The photometric jitter of one H×W×3 uint8 image, drawn in the data worker: float64 [brightness b, contrast
+    c, saturation s, m], each factor U(1 - jitter, 1 + jitter), and m the mean of the brightened image b·x (x =
+    img / 255 in float32), summed by numpy in memory order as `normalise` needs it to the last bit."""
+    b, c, s = rng.uniform(1 - jitter, 1 + jitter, size=3)
+    m = (_UNIT.astype(np.float64) * b)[img].mean()  # x·b takes 256 values: a table lookup, not a float image
+    return np.array([b, c, s, m])
+
+
+def normalise(images: torch.Tensor, jitter: torch.Tensor | None = None) -> torch.Tensor:
+    """(..., 3, H, W) uint8 → float32 ImageNet-normalised, (x / 255 - mean) / std per channel, on images' device.
+
+    jitter: (..., 4) float64 rows of `jitter_draw`, one per image, or None. With it each image x in [0, 1] becomes
+    y = (b·x - m)·c + m, then z = clip((y - g)·s + g, 0, 1) with g its per-pixel channel mean, in float64, then
+    normalised and rounded to float32. Each step is one elementwise IEEE op in numpy's order (no fused
+    multiply-add; divisions by device tensors, which CUDA divides exactly where it would multiply by the
+    reciprocal of a Python scalar), so the result equals the per-image numpy computation bit for bit (tests check
+    it on the CPU)."""
+    if images.dtype != torch.uint8 or images.shape[-3] != 3:
+        raise ValueError(f"normalise takes (..., 3, H, W) uint8 images, got {images.dtype} {tuple(images.shape)}")
+    device = images.device
+    x = images.float() / torch.tensor(255.0, device=device)
+    if jitter is None:
+        mean, std = (torch.from_numpy(v).to(device).view(3, 1, 1) for v in (IMAGENET_MEAN, IMAGENET_STD))
+        return (x - mean) / std
+    b, c, s, m = jitter.to(device, torch.float64).reshape(-1, 4).view(-1, 4, 1, 1, 1).unbind(1)  # each (N,1,1,1)
+    y = x.double().reshape(-1, *images.shape[-3:]).mul_(b).sub_(m).mul_(c).add_(m)  # in place: one float64 image
+    gray = (y[:, 0:1] + y[:, 1:2]).add_(y[:, 2:3]).div_(torch.tensor(3.0, dtype=torch.float64, device=device))
+    z = y.sub_(gray).mul_(s).add_(gray).clamp_(0.0, 1.0)
+    mean, std = (torch.from_numpy(v).to(device, torch.float64).view(3, 1, 1) for v in (IMAGENET_MEAN, IMAGENET_STD))
+    return z.sub_(mean).div_(std).float().reshape(images.shape)
+
+
+def normalised(batch: dict, keys=("query", "reference", "image", "query_views")) -> dict:
+    """`batch` with its uint8 images under `keys` normalised (`normalise`, with their `<key>_jitter` draws, which
+    it drops); float images (already normalised) are left as they are."""
+    out = dict(batch)
+    for key in keys:
+        jitter = out.pop(f"{key}_jitter", None)
+        if isinstance(out.get(key), torch.Tensor) and out[key].dtype == torch.uint8:
+            out[key] = normalise(out[key], jitter)
+    return out

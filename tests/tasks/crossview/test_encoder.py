@@ -17,7 +17,9 @@ from geoloc.tasks.crossview import CrossViewEncoder
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.datasets import CrossViewPairs, ViewImages
 from geoloc.tasks.crossview.input_spec import SPHERE_CROP, query_input, reference_input
-from geoloc.tasks.crossview.transforms import align_query, align_reference, load_view, to_tensor
+from geoloc.data.io import read_rgb
+from geoloc.tasks.crossview.transforms import (align_query, align_reference, decode_size, load_view, normalise,
+                                               to_tensor)
 
 from conftest import TINY, compose_train
 from helpers.crossview_runs import task_of
@@ -69,15 +71,16 @@ def test_the_inputs_are_the_data_modules(finished_run):
     pairs = CrossViewPairs(cvusa(str(root), "val"), encoder.data, train=False)
     street = cv2.cvtColor(cv2.imread(str(pairs.split.queries[2])), cv2.COLOR_BGR2RGB)
     inputs, headings = encoder.street_inputs(street, heading=0.0)
-    assert headings.tolist() == [0.0] and torch.equal(inputs[0], pairs[2]["query"])
+    assert headings.tolist() == [0.0] and torch.equal(inputs[0], normalise(pairs[2]["query"]))
     inputs, headings = encoder.street_inputs(street, steps=4)  # unknown heading: candidates 0, 90, 180, 270
     assert headings.tolist() == [0.0, 90.0, 180.0, 270.0] and inputs.shape[0] == 4
-    aerial = cv2.cvtColor(cv2.imread(str(pairs.split.references[2])), cv2.COLOR_BGR2RGB)
+    # the tile as the data module decodes it (a JPEG at reduced scale where its resize allows: decode_size)
+    aerial = read_rgb(pairs.split.references[2], decode_size(encoder.data, "aerial"))
     gallery = ViewImages(pairs.split.references, "aerial", encoder.data)
-    assert torch.equal(encoder.aerial_input(aerial)[0], gallery[2]["image"])
+    assert torch.equal(encoder.aerial_input(aerial)[0], normalise(gallery[2]["image"]))
     with torch.no_grad():
         torch.testing.assert_close(encoder.encode_aerial(encoder.aerial_input(aerial)),
-                                   encoder.model.reference(gallery[2]["image"][None]))
+                                   encoder.model.reference(normalise(gallery[2]["image"][None])))
 
 
 @pytest.mark.slow
@@ -127,7 +130,9 @@ def test_university_1652_satellite_to_drone(tmp_path, recorded):
                                        "dataset.direction=satellite_to_drone"], views)
     encoder = CrossViewEncoder.load(tmp_path / "best.pt")
     assert encoder.query_views == {"train": "image", "val": "aerial"}
-    assert encoder.input_spec()["query"] == ((32, 32), ["resize to 32x32 (cv2.INTER_AREA)"])
+    shape, steps = encoder.input_spec()["query"]
+    assert shape == (32, 32) and steps[-1] == "resize to 32x32 (cv2.INTER_AREA)"
+    assert "1/8, 1/4, 1/2 scale whose sides stay >= 32x32" in steps[0]  # photos decode at reduced scale
     assert queries_entry(encoder, encoder.query_view)["queries"]["file"] == "reference.onnx"
 
 

@@ -8,7 +8,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
-from geoloc.tasks.crossview.transforms import align_query, to_tensor
+from geoloc.tasks.crossview.transforms import align_query, image_tensor, to_tensor
 from geoloc.tasks.crossview.views import (
     circular_error_deg,
     crop_view,
@@ -115,8 +115,8 @@ def test_candidates_hold_the_aligned_canvas_of_each_heading():
     view = crop_view(pano, 90, 135.0)  # heading 135 = candidate 3 of 8
     tensors, headings = query_candidates(view, cfg, "panorama", 90, 8)
     assert tensors.shape == (8, 3, 32, 32) and np.allclose(headings, np.arange(8) * 45.0)
-    truth = to_tensor(align_query(north_window(pano, 90, 135.0), cfg))
-    assert torch.equal(tensors[3], truth)
+    truth = image_tensor(align_query(north_window(pano, 90, 135.0), cfg))
+    assert tensors.dtype == torch.uint8 and torch.equal(tensors[3], truth)  # normalised on the device
     assert not torch.equal(tensors[2], truth)
     polar_cfg = CrossViewDataConfig(alignment="polar", aerial_size=32, pano_size=[16, 64])
     tensors, _ = query_candidates(view, polar_cfg, "panorama", 90, 8)

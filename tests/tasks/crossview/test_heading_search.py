@@ -25,7 +25,7 @@ from geoloc.tasks.crossview.transforms import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     align_query,
-    to_tensor,
+    image_tensor,
 )
 from geoloc.tasks.crossview.views import circular_error_deg, eval_heading, north_window
 from torch import nn
@@ -122,7 +122,7 @@ def tiny_cfg(root, **kw):
 
 def test_training_sees_the_window_at_north_or_at_a_random_bearing(tiny_cvusa):
     pano = read_rgb(tiny_cvusa / "streetview/panos/0000004.jpg")
-    north = to_tensor(align_query(north_window(pano, 90, 0.0), tiny_cfg(tiny_cvusa)))
+    north = image_tensor(align_query(north_window(pano, 90, 0.0), tiny_cfg(tiny_cvusa)))
     known = pairs_of(tiny_cfg(tiny_cvusa, fov=90), "train", train=True)
     assert torch.equal(known[(3, 0)]["query"], north)
     assert torch.equal(pairs_of(tiny_cfg(tiny_cvusa, fov=90), "train", train=False)[3]["query"], north)
@@ -131,8 +131,8 @@ def test_training_sees_the_window_at_north_or_at_a_random_bearing(tiny_cvusa):
     assert torch.equal(queries[0]["image"], north)  # galleries apart from the queries (VIGOR) see them at north too
     random = pairs_of(tiny_cfg(tiny_cvusa, fov=90, random_heading=True), "train", train=True)
     heading = float(np.random.default_rng((0, 0, 3)).uniform(0, 360))  # the item's augmentation RNG, first draw
-    assert torch.equal(random[(3, 0)]["query"], to_tensor(align_query(north_window(pano, 90, heading),
-                                                                       tiny_cfg(tiny_cvusa))))
+    assert torch.equal(random[(3, 0)]["query"], image_tensor(align_query(north_window(pano, 90, heading),
+                                                                          tiny_cfg(tiny_cvusa))))
     assert not torch.equal(random[(3, 0)]["query"], random[(3, 1)]["query"])
 
 

@@ -8,6 +8,7 @@ import pytest
 import torch
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import run
+from geoloc.tasks.crossview.transforms import normalise
 
 from omegaconf import OmegaConf
 
@@ -88,8 +89,8 @@ def test_a_checkpoint_evaluates_on_the_real_cvusa_samples(tiny_cvusa, tmp_path):
     real = OmegaConf.merge(stored.dataset, {"root": str(REALDATA / "cvusa_mini")})
     pairs = pairs_of(real, "val", train=False)
     with torch.no_grad():
-        query, reference = task.eval().model(torch.stack([pairs[i]["query"] for i in range(len(pairs))]),
-                                             torch.stack([pairs[i]["reference"] for i in range(len(pairs))]))
+        query, reference = task.eval().model(normalise(torch.stack([pairs[i]["query"] for i in range(len(pairs))])),
+                                             normalise(torch.stack([pairs[i]["reference"] for i in range(len(pairs))])))
     sim = query.double() @ reference.double().t()
     ranks = (sim > sim.diagonal()[:, None]).sum(1)
     assert metrics["R@1"] == pytest.approx(float((ranks == 0).double().mean()), abs=1e-9)

@@ -11,6 +11,7 @@ from geoloc.apps.query import QueryError, check_settings
 from geoloc.datasets.cvusa import cvusa
 from geoloc.tasks.crossview.datasets import CrossViewPairs
 from geoloc.tasks.crossview.heading import query_inputs
+from geoloc.tasks.crossview.transforms import normalise
 from geoloc.tasks.crossview.confidence import NO_HOLDOUT
 from geoloc.tasks.crossview.views import headings_around
 from helpers.calibrated import KNOWN, calibrated_copy
@@ -51,7 +52,7 @@ def test_the_confidence_is_the_calibrator_on_the_top2_scores_for_a_given_heading
     pairs = CrossViewPairs(cvusa(str(root), "val"), loc.encoder.data, train=False)
     image = read_street(pairs.split.queries[2])
     answer = loc.localize(image, topk=1, heading=0)
-    expect = brute_force(loc, pairs[2]["query"][None], np.array([0.0]))
+    expect = brute_force(loc, normalise(pairs[2]["query"][None]), np.array([0.0]))  # uint8 item -> branch input
     top2 = [expect[0][1], expect[0][1] - expect[1][1]]
     assert answer.confidence == pytest.approx(float(KNOWN.probability([top2])[0]), abs=1e-5)
     assert answer.calibrated is True and answer.abstained is None and len(answer.topk) == 1

@@ -20,7 +20,7 @@ from geoloc.synthetic import generate
 from geoloc.synthetic.layouts import place_utm
 from geoloc.tasks.crossview.datasets import CrossViewPairs
 from geoloc.tasks.crossview.heading import query_candidates
-from geoloc.tasks.crossview.transforms import align_query, to_tensor
+from geoloc.tasks.crossview.transforms import align_query, normalise, to_tensor
 from geoloc.tasks.crossview.views import view_canvas
 from hydra import compose, initialize_config_dir
 
@@ -80,6 +80,8 @@ def test_synthetic_layouts_write_positions_the_readers_return(tmp_path):
 def brute_force(localizer, inputs, headings):
     """Every gallery row's best score over the candidate inputs, one forward pass each (no batching)."""
     reference = localizer.index._descriptors
+    if inputs.dtype == torch.uint8:  # the data module's images, normalised on the device in training
+        inputs = normalise(inputs)
     with torch.no_grad():
         scores = torch.stack([localizer.encoder.encode_street(x[None])[0] @ reference.t() for x in inputs])  # K x N
     best, k = scores.max(dim=0)

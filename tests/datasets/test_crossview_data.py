@@ -129,9 +129,9 @@ def test_the_runs_seed_reaches_init_sampling_and_augmentation(tiny_cvusa, tmp_pa
     seen = {}
     real_build = crossview_run.build
 
-    def spy_build(data_cfg, reader, split, train, augment_seed=0):
+    def spy_build(data_cfg, reader, split, train, augment_seed=0, **options):
         seen[split] = augment_seed
-        return real_build(data_cfg, reader, split, train, augment_seed)
+        return real_build(data_cfg, reader, split, train, augment_seed, **options)
 
     def no_fit(trainer, task, *args, **kwargs):
         seen["trainer_seed"] = trainer.cfg.seed

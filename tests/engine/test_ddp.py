@@ -82,6 +82,7 @@ def _train_steps(rank, world, port, root, out_dir):
         full = default_collate([dataset[(i, 0)] for i in range(step * BATCH, (step + 1) * BATCH)])
         per_rank = BATCH // world
         batch = {k: v[rank * per_rank:(rank + 1) * per_rank] for k, v in full.items()}
+        batch = task.on_after_batch_transfer(batch)  # the uint8 images the workers return, normalised
         out = model(batch, trainer.engine)
         trainer.engine.backward(out["loss"])
         grads = {n: p.grad.detach().clone() for n, p in task.named_parameters() if p.grad is not None}

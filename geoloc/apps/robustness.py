@@ -102,6 +102,21 @@ def write_whole(path: Path, text: str, overwrite: bool) -> None:
             os.unlink(tmp)
 
 
+def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):
+    """evaluate.py's config for `overrides`, composed from conf/evaluate.yaml as `python evaluate.py` composes it."""
+    from hydra import compose, initialize_config_dir
+
+    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends)
+
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    if not (conf / "evaluate.yaml").is_file():
+        raise ConfigError(f"robustness composes evaluate.py's config from conf/ of a geoloc checkout, and {conf} "
+                          "holds none: install geoloc from its repository with pip install -e .")
+    with initialize_config_dir(str(conf), version_base="1.3"):
+        return compose("evaluate", overrides=[f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",
+                                              f"progress={str(progress).lower()}", *overrides])
+
+
 def robustness(args: list[str]) -> dict:
     """Compute and write the table; returns its JSON."""
     own, dataset, cross = split_args(args)
@@ -116,7 +131,8 @@ def robustness(args: list[str]) -> dict:
     plan = Plan(fovs=list(cfg.fovs), heading_steps=cfg.heading_steps, distractors=cfg.distractors,
                 distractor_split=cfg.distractor_split, dataset=dataset, cross=cross)
     start = time.perf_counter()
-    rows = evaluate_conditions(cfg.ckpt, plan, cfg.device, cfg.num_workers, cfg.progress)
+    rows = evaluate_conditions(cfg.ckpt, plan, lambda overrides: evaluate_config(
+        cfg.ckpt, overrides, cfg.device, cfg.num_workers, cfg.progress))
     seconds = time.perf_counter() - start
     out.mkdir(parents=True, exist_ok=True)
     table, record = markdown(rows, plan, cfg.ckpt, seconds), as_json(rows, plan, cfg.ckpt, seconds)

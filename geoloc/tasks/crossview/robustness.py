@@ -70,30 +70,15 @@ def test_condition(fov: float, unknown_heading: bool, heading_steps: int) -> tup
             f"dataset.heading_steps={heading_steps}")
 
 
-def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):
-    """evaluate.py's config for `overrides`, composed from conf/evaluate.yaml as `python evaluate.py` composes it."""
-    from hydra import compose, initialize_config_dir
-
-    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends)
-
-    conf = Path(__file__).resolve().parents[3] / "conf"
-    if not (conf / "evaluate.yaml").is_file():
-        raise ConfigError(f"robustness composes evaluate.py's config from conf/ of a geoloc checkout, and {conf} "
-                          "holds none: install geoloc from its repository with pip install -e .")
-    with initialize_config_dir(str(conf), version_base="1.3"):
-        return compose("evaluate", overrides=[f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",
-                                              f"progress={str(progress).lower()}", *overrides])
-
-
-def evaluate_conditions(ckpt: str, plan: Plan, device: str = "auto", num_workers: int = 0,
-                        progress: bool = False, on_row=None) -> list[dict]:
+def evaluate_conditions(ckpt: str, plan: Plan, compose, on_row=None) -> list[dict]:
     """[{"condition": Condition, "split": name, "distractors": tiles added, "metrics": evaluate.py's metrics}] for
     each of plan.conditions() (fewer distractors than asked where the source split has fewer tiles); the network is
-    built once from `ckpt`. on_row(row) is called as each row is done."""
+    built once from `ckpt`. compose(overrides) gives evaluate.py's config of a condition (the app composes it with
+    Hydra); on_row(row) is called as each row is done."""
     state = ckpt_io.load(ckpt)
     stored = stored_config(state)
     conditions = plan.conditions()
-    runs = [parse_evaluation(evaluate_config(ckpt, c.overrides, device, num_workers, progress), stored)
+    runs = [parse_evaluation(compose(c.overrides), stored)
             for c in conditions]  # every condition's config checked before anything is evaluated
     task = restored_task(state, ckpt, stored)
     rows, distractor_paths = [], {}

@@ -173,7 +173,9 @@ class Localizer:
             where = offset_to_latlon(centre, east, north) if self.places.kind == "latlon" else centre + [east, north]
             hit["refined_position"] = {**dict(zip(POSITION_KEYS[self.places.kind], map(float, where))),
                                        "heading_deg": float((hit["heading_deg"] + out["heading_offset_deg"][i]) % 360),
-                                       "mass_5m": float(out["mass"][i])}
+                                       "mass_5m": float(out["mass"][i]),
+                                       **_tile_pixel(east, north, tiles[i].shape[:2],
+                                                     self.places.reference_extent_m[hit["row"]])}
         answer.refined_position = dict(answer.topk[0]["refined_position"])
         answer.probability_map = out["maps"][0]
         if answer.truth is not None and "position" in answer.truth:
@@ -236,6 +238,15 @@ class Localizer:
             top1 = self.places.reference_positions[best[0]["row"]]
             truth["error_m"] = float(distance_m(where, top1, self.places.kind))
         return truth
+
+
+def _tile_pixel(east: float, north: float, size_px, extent_m) -> dict:
+    """Where a refined offset (metres east and north of a north-up tile's centre) lies in the tile's image:
+    {"tile_px": [row, col], "tile_size_px": [H, W]}, which the page draws its dot at."""
+    (height, width), (extent_h, extent_w) = size_px, extent_m
+    row = height / 2 - float(north) * height / float(extent_h)
+    col = width / 2 + float(east) * width / float(extent_w)
+    return {"tile_px": [row, col], "tile_size_px": [int(height), int(width)]}
 
 
 def _tile(root: Path, path: str) -> np.ndarray | None:

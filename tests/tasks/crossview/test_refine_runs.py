@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 from geoloc.config import ConfigError
@@ -84,13 +85,19 @@ def test_refinement_stage_from_a_retrieval_checkpoint(vigor_root, tmp_path):
                                 path=vigor_root / query["path"])
     out = answer.to_json()
     refined = out["refined_position"]
-    assert set(refined) == {"lat", "lon", "heading_deg", "mass_5m"} and 0.0 <= refined["mass_5m"] <= 1.0
+    assert set(refined) == {"lat", "lon", "heading_deg", "mass_5m", "tile_px", "tile_size_px"}
+    assert 0.0 <= refined["mass_5m"] <= 1.0
     assert refined["heading_deg"] == 0.0  # trained with a known heading: the given one
     assert all("refined_position" in hit for hit in out["topk"])
     # inside its tile: no further from the top-1 tile's centre than the tile's half diagonal
     top1 = out["topk"][0]
     extent = localizer.places.reference_extent_m[top1["row"]]
     assert haversine_m([refined["lat"], refined["lon"]], [top1["lat"], top1["lon"]]) <= 0.5 * (extent ** 2).sum() ** 0.5 + 0.5
+    # the page's dot: the same offset in the tile's pixels, metres per pixel = extent / size
+    (row, col), (height, width) = refined["tile_px"], refined["tile_size_px"]
+    metres = haversine_m([refined["lat"], refined["lon"]], [top1["lat"], top1["lon"]])
+    pixels_m = np.hypot((row - height / 2) * extent[0] / height, (col - width / 2) * extent[1] / width)
+    assert 0 <= row <= height and 0 <= col <= width and abs(pixels_m - metres) < 0.05 * metres + 0.05
     assert answer.probability_map.ndim == 2 and abs(answer.probability_map.sum() - 1.0) < 1e-4
     assert "refined_error_m" in out["truth"]
     picture = localization_figure(answer, read_street(vigor_root / query["path"]), localizer.places,

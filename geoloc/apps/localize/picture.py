@@ -28,15 +28,15 @@ NEIGHBOURHOOD_M = 5_000.0  # the map shows candidates this close to its centre
 MIN_RADIUS_M = 150.0
 
 
-def _refined(ax, answer: LocalizationResult, hit: dict, tile: np.ndarray, extent: np.ndarray) -> None:
+def _refined(ax, answer: LocalizationResult, hit: dict, tile: np.ndarray) -> None:
     """On the top-1 tile: the refiner's probability map, its position (a dot) and heading (an arrow)."""
     height, width = tile.shape[:2]
     prob = answer.probability_map
     ax.imshow(prob / max(float(prob.max()), 1e-12), extent=(0, width, height, 0), cmap="magma", alpha=0.5,
               interpolation="bilinear")
-    refined, places_kind = hit["refined_position"], answer.positions
-    east, north = _metres(places_kind, _array(places_kind, hit), _array(places_kind, refined))
-    col, row = width / 2 + east / extent[1] * width, height / 2 - north / extent[0] * height
+    refined = hit["refined_position"]
+    (row, col), (size_h, size_w) = refined["tile_px"], refined["tile_size_px"]  # the localizer's pixel of it
+    row, col = row * height / size_h, col * width / size_w
     angle = np.radians(refined["heading_deg"])
     length = 0.15 * width
     ax.scatter([col], [row], s=40, c="cyan", edgecolors="k", zorder=3)
@@ -109,7 +109,7 @@ def localization_figure(answer: LocalizationResult, image: np.ndarray, places, o
         if tile is not None:
             ax.imshow(tile)
             if i == 0 and answer.probability_map is not None and "refined_position" in hit:
-                _refined(ax, answer, hit, tile, places.reference_extent_m[hit["row"]])
+                _refined(ax, answer, hit, tile)
         colour = "green" if hit["row"] == truth.get("row") else "red" if truth else "grey"
         for side in ax.spines.values():
             side.set_edgecolor(colour)

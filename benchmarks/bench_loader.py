@@ -11,6 +11,8 @@ the batched normalisation that now runs on the training device (timed here on th
 Cases (the dataset section each experiment composes):
 - paper: experiment=paper_cvusa (IPT 288x288, rotation 10, no jitter) on 750x750 aerial / 1232x224 panorama JPEGs:
   the real CVUSA samples in ../shared/realdata/cvusa_mini when present (5 pairs, cycled), else synthetic ones;
+  (the 375 -> 288 resize of the half-scale aerial bilinear, dataset.resize_interpolation=linear as the real
+  datasets' yaml set it); paper-area: the same with the area resize (INTER_AREA), as before;
 - default: `python train.py`'s dataset keys (IPT 64x64, flip/rotate, jitter 0.1, reduced_decode=false) on the
   synthetic world's 256x256 aerial / 616x112 panorama JPEGs; default-reduced: the same with reduced_decode=true;
 - vigor: dataset=vigor's keys at the paper's 288 (IPT 288x288, flip/rotate, jitter 0.1) on VIGOR's 640x640 PNG
@@ -162,7 +164,7 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--code", default=str(REPO), help="the checkout whose geoloc is measured (default: this one)")
     p.add_argument("--pairs", type=int, default=40, help="pairs per timed round")
     p.add_argument("--rounds", type=int, default=5)
-    p.add_argument("--cases", nargs="+", default=["paper", "default", "default-reduced", "vigor"])
+    p.add_argument("--cases", nargs="+", default=["paper", "paper-area", "default", "default-reduced", "vigor"])
     args = p.parse_args(argv)
     code = Path(args.code).resolve()
     sys.path.insert(0, str(code))
@@ -178,6 +180,7 @@ def main(argv=None) -> list[dict]:
     default = ["dataset=cvusa", "dataset.joint_flip_rotate=true"]  # the synthetic dataset's keys, CVUSA's reader
     cases = {
         "paper": (["experiment=paper_cvusa"], lambda: paper_root, {}),
+        "paper-area": (["experiment=paper_cvusa", "dataset.resize_interpolation=area"], lambda: paper_root, {}),
         "default": (default, lambda: write_pairs(tmp / "default", 8, (256, 256), (112, 616), ".jpg"),
                     {"reduced_decode": False}),
         "default-reduced": (default, lambda: tmp / "default", {"reduced_decode": True}),

@@ -90,16 +90,16 @@ def align_query(street: np.ndarray, cfg: CrossViewDataConfig, view: str = "panor
     """wrapped: the panorama ends with a copy of its first column (a window of views.view_canvases)."""
     s = cfg.aerial_size
     if view == "image":  # a photo: no polar geometry, the square input of the aerial branch's size
-        return resize(street, (s, s))
+        return resize(street, (s, s), cfg.resize_interpolation)
     if cfg.alignment == "ipt":
         return polar.street_to_aerial(street, (s, s), wrapped=wrapped)
-    return resize(street[:, :-1] if wrapped else street, tuple(cfg.pano_size))
+    return resize(street[:, :-1] if wrapped else street, tuple(cfg.pano_size), cfg.resize_interpolation)
 
 
 def align_reference(aerial: np.ndarray, cfg: CrossViewDataConfig) -> np.ndarray:
     if cfg.alignment == "polar":
         return polar.aerial_to_polar(aerial, tuple(cfg.pano_size))
-    return resize(aerial, (cfg.aerial_size, cfg.aerial_size))
+    return resize(aerial, (cfg.aerial_size, cfg.aerial_size), cfg.resize_interpolation)
 
 
 def flip_rotate(street: np.ndarray, aerial: np.ndarray, quarter_turns: int, flip: bool):
@@ -122,10 +122,18 @@ def flip_rotate(street: np.ndarray, aerial: np.ndarray, quarter_turns: int, flip
 _CLOCKWISE_TURNS = {1: cv2.ROTATE_90_CLOCKWISE, 2: cv2.ROTATE_180, 3: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
 
-def resize(img: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+_INTERPOLATION = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR}
+
+
+def resize(img: np.ndarray, hw: tuple[int, int], interpolation: str = "area") -> np.ndarray:
+    """interpolation: dataset.resize_interpolation. "linear" is bilinear only where each side shrinks by less than
+    2x (what a reduced JPEG decode leaves) or grows; a larger reduction is an area average, where bilinear would
+    alias."""
     if img.shape[:2] == tuple(hw):
         return img
-    return cv2.resize(img, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
+    if interpolation == "linear" and (img.shape[0] >= 2 * hw[0] or img.shape[1] >= 2 * hw[1]):
+        interpolation = "area"
+    return cv2.resize(img, (hw[1], hw[0]), interpolation=_INTERPOLATION[interpolation])
 
 
 def to_tensor(img: np.ndarray) -> torch.Tensor:

@@ -4,6 +4,7 @@ gallery built by shard jobs through evaluate.py and merged scores as the one-job
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import socket
@@ -66,3 +67,31 @@ def test_a_torchrun_gallery_equals_the_one_process_gallery(tiny_cvusa, tmp_path)
     for key in RECALL:
         assert merged[key] == single[key], key
     torch.testing.assert_close(GalleryIndex.load(tmp_path / "merged" / "gallery.pt").vectors(), a, rtol=0, atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None,
+                    reason="hydra-submitit-launcher is not installed")
+def test_shard_jobs_through_the_submitit_launcher_merge_into_the_one_job_gallery(tiny_cvusa, tmp_path):
+    """docs/distributed.md's step 2 as written, with submitit's local executor in place of SLURM's: one Hydra sweep
+    over gallery.shard_index, each job its own process, then one merge."""
+    run_dir = tmp_path / "run"
+    run.train(compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={run_dir}", "trainer.max_epochs=1"]))
+    ckpt = run_dir / "best.pt"
+    single = evaluate(tmp_path, ckpt, "eval1", f"gallery.save={tmp_path / 'one'}")
+    shards = tmp_path / "shards"
+    cmd = [sys.executable, str(REPO / "evaluate.py"), "-m", "hydra/launcher=submitit_local", f"ckpt={ckpt}",
+           "device=cpu", "progress=false", "gallery.num_shards=3", "gallery.shard_index=range(0,3)",
+           f"gallery.save={shards}/" + "${gallery.shard_index}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+           "hydra.launcher.timeout_min=5", "hydra.launcher.cpus_per_task=1"]
+    proc = subprocess.run(cmd, cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    folders = [shards / str(i) for i in range(3)]
+    assert [json.loads((f / "gallery.json").read_text())["part"]["shard_index"] for f in folders] == [0, 1, 2]
+    assert geoloc(["gallery", "merge", *map(str, folders), f"out={tmp_path / 'merged'}"]) == 0
+    merged = evaluate(tmp_path, ckpt, "eval_merged", f"gallery.load={tmp_path / 'merged'}")
+    for key in RECALL:
+        assert merged[key] == single[key], key
+    one = GalleryIndex.load(tmp_path / "one" / "gallery.pt").vectors()
+    torch.testing.assert_close(GalleryIndex.load(tmp_path / "merged" / "gallery.pt").vectors(), one, rtol=0, atol=1e-6)

@@ -17,7 +17,10 @@ def main(cfg: DictConfig) -> float:
     from geoloc.launch.run import train
 
     best = train(cfg)
-    return float(best.get("R@1", 0.0))  # the value Hydra sweepers optimise
+    # the value Hydra sweepers optimise: the metric that selected best.pt where the run names one (trainer.monitor:
+    # fine_median_m for the refinement stage), else the cross-view task's R@1
+    monitor = cfg.trainer.get("monitor") or "R@1"
+    return float(best.get(monitor, 0.0))
 
 
 if __name__ == "__main__":

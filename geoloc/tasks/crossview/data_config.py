@@ -35,6 +35,9 @@ class CrossViewDataConfig:
     rotation_deg: float = 0.0  # train: rotate the aerial-like query by U(-r, r) degrees (panorama column roll)
     color_jitter: float = 0.1  # train: brightness/contrast/saturation jitter strength, 0 = off
     joint_flip_rotate: bool = False  # train: flip / rotate by k*90° the aerial and the panorama consistently
+    # train, photo queries only (University-1652's drone views): rotate the aerial tile alone by U(-r, r) degrees, as
+    # the University-1652 baseline's satellite transform does (RandomAffine(90)); the query's bearing is unknown
+    aerial_rotation_deg: float = 0.0
     fov: float = 360.0  # the street camera's field of view in degrees, (0, 360]; the rest of the canvas is 0
     random_heading: bool = False  # train: the view at a random bearing; eval: unknown heading, searched
     heading_steps: int = 36  # eval with random_heading: candidate headings 360·k/K per query (docs/heading.md)
@@ -63,6 +66,9 @@ class CrossViewDataConfig:
         if self.aerial_size < 16 or len(self.pano_size) != 2 or min(self.pano_size) < 8:
             raise ValueError(f"image sizes too small: aerial_size={self.aerial_size}, pano_size={self.pano_size}")
         check_fov(self.fov, "dataset.fov")
+        if not 0.0 <= self.aerial_rotation_deg <= 180.0:
+            raise ValueError(f"dataset.aerial_rotation_deg must be in [0, 180] (a rotation of U(-r, r) degrees), "
+                             f"got {self.aerial_rotation_deg}")
         if self.calibration_holdout < 0:
             raise ValueError(f"dataset.calibration_holdout must be >= 0 (train queries kept out of training to fit "
                              f"the confidence; 0: none, the gallery is uncalibrated), got {self.calibration_holdout}")

@@ -40,6 +40,10 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
                           "flip/rotate and rotation of panoramas and the panorama field of view / heading do not "
                           "apply; set dataset.alignment=none dataset.joint_flip_rotate=false dataset.rotation_deg=0 "
                           "dataset.fov=360 dataset.random_heading=false")
+    if out.query_view in ("panorama", "sphere") and cfg.aerial_rotation_deg > 0:
+        raise ConfigError(f"dataset {cfg.name!r} has panorama queries: dataset.aerial_rotation_deg turns the tile "
+                          "alone, which breaks its north alignment with the panorama; set "
+                          "dataset.aerial_rotation_deg=0 (dataset.joint_flip_rotate turns both consistently)")
     if split == "train" and cfg.calibration_holdout:
         out = limited(out, out.num_queries - _holdout(cfg, out))  # the held-out tail is never trained on
     limit = cfg.max_train if split == "train" else cfg.max_val

@@ -75,14 +75,23 @@ def align(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
 def augment(street: np.ndarray, aerial: np.ndarray, cfg: CrossViewDataConfig,
             rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
     """The train-time geometric augmentation of one decoded pair (none when rng is None): the joint flip /
-    quarter-turn, then the rotation of the query alone."""
+    quarter-turn, then the rotation of the query alone, then (photo queries) the rotation of the tile alone."""
     if rng is not None and cfg.joint_flip_rotate:
         street, aerial = flip_rotate(street, aerial, int(rng.integers(4)), bool(rng.integers(2)))
     if rng is not None and cfg.rotation_deg > 0:
         # rotating the aerial-like image by θ is a circular shift of the panorama by θ/360 of its width
         shift = int(round(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg) / 360.0 * street.shape[1]))
         street = np.roll(street, shift, axis=1)
+    if rng is not None and cfg.aerial_rotation_deg > 0:  # photo queries only (datasets.read_split checks)
+        aerial = rotate_about_centre(aerial, float(rng.uniform(-cfg.aerial_rotation_deg, cfg.aerial_rotation_deg)))
     return street, aerial
+
+
+def rotate_about_centre(img: np.ndarray, angle_deg: float) -> np.ndarray:
+    """`img` turned counter-clockwise by angle_deg about its centre, the same size, black outside (the corners)."""
+    h, w = img.shape[:2]
+    matrix = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), angle_deg, 1.0)
+    return cv2.warpAffine(img, matrix, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
 def align_query(street: np.ndarray, cfg: CrossViewDataConfig, view: str = "panorama",

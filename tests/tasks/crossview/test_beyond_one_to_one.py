@@ -100,6 +100,31 @@ def test_photo_queries_refuse_polar_alignment(u1652_root, tmp_path):
         split_of(cfg.dataset, "train")
 
 
+def test_the_tile_alone_turns_for_photo_queries_and_never_for_panoramas(u1652_root, tiny_cvusa):
+    """dataset.aerial_rotation_deg: University-1652's satellite rotation, drawn per item from (seed, epoch, index);
+    the drone photo is untouched, and a panorama dataset refuses it (the tile would leave north)."""
+    import numpy as np
+    from geoloc.config import ConfigError
+    from geoloc.tasks.crossview.transforms import rotate_about_centre
+
+    from helpers.crossview_runs import pairs_of
+
+    base = [*SMALL, "dataset=u1652", f"dataset.root={u1652_root}"]
+    plain = pairs_of(compose_train(base).dataset, "train", train=True)
+    turned = pairs_of(compose_train([*base, "dataset.aerial_rotation_deg=90"]).dataset, "train", train=True)
+    a, b = plain[(0, 0)], turned[(0, 0)]
+    assert torch.equal(a["query"], b["query"]) and not torch.equal(a["reference"], b["reference"])
+    assert torch.equal(b["reference"], turned[(0, 0)]["reference"])  # keyed on the item: the same draw again
+    assert not torch.equal(b["reference"], turned[(0, 1)]["reference"])  # another epoch, another angle
+    square = np.zeros((9, 9, 3), np.uint8)
+    square[4, 6] = 255  # two pixels east of the centre, turned 90° counter-clockwise: two pixels north of it
+    assert rotate_about_centre(square, 90.0)[2, 4].tolist() == [255, 255, 255]
+    assert np.array_equal(rotate_about_centre(square, 0.0), square)
+    cfg = compose_train([*TINY, f"dataset.root={tiny_cvusa}", "dataset.aerial_rotation_deg=30"])
+    with pytest.raises(ConfigError, match="panorama queries: dataset.aerial_rotation_deg"):
+        split_of(cfg.dataset, "train")
+
+
 @pytest.mark.slow
 def test_infonce_with_a_learned_temperature_and_similarity_batches(tiny_cvusa, tmp_path, monkeypatch):
     """loss=infonce sampler=similarity: the temperature is optimised with the network, and from the second epoch

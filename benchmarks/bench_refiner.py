@@ -1,7 +1,7 @@
 """The correlation refiner's cost: one query refined in its top-5 tiles (encode the query, encode 5 tiles, match),
-on one thread, at the refiner's input sides and with a known heading (1 bin) or an unknown one (36 bins).
+on one thread, at the refiner's input sides and with a known heading (1 bin) or an unknown one (12 or 36 bins).
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128] [--tiles 5] [--repeats 20]
+    OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128 256] [--bins 1 12 36] [--tiles 5] [--repeats 20]
 
 Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once)."""
 
@@ -33,6 +33,7 @@ def main() -> None:
     parser.add_argument("--tiles", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--bins", type=int, nargs="+", default=[1, 12, 36], help="heading bins (1: known heading)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     refiner = registry.build("refiner", {"name": "correlation"}).eval()
@@ -40,7 +41,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     for side in args.sides:
         query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
-        for bins in (1, 36):
+        for bins in args.bins:
             headings = torch.arange(bins) * (360.0 / bins)
 
             @torch.no_grad()

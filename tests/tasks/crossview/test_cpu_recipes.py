@@ -21,7 +21,7 @@ def test_the_recipes_choose_what_they_say():
     assert (vigor.loss.name, vigor.sampler.name, vigor.model.shared) == ("infonce", "one_per_place", True)
     u1652 = compose_train(["experiment=u1652_cpu"])
     assert (u1652.dataset.name, u1652.dataset.preset, u1652.dataset.alignment) == ("u1652", "u1652_medium", "none")
-    assert (u1652.loss.name, u1652.sampler.name) == ("infonce", "one_per_place")
+    assert (u1652.loss.name, u1652.sampler.name, u1652.dataset.aerial_rotation_deg) == ("infonce", "no_duplicate", 90)
     any_view = compose_train(["experiment=any_view_cpu"])
     assert (any_view.views.name, any_view.views.fov_min, any_view.views.fov_max) == ("any_view", 70.0, 360.0)
     assert (any_view.loss.name, any_view.dataset.alignment, any_view.dataset.random_heading) == (

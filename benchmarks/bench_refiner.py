@@ -34,12 +34,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--bins", type=int, nargs="+", default=[1, 12, 36], help="heading bins (1: known heading)")
+    parser.add_argument("--widths", type=int, nargs="+", default=[16, 32],
+                        help="refiner.width = refiner.channels (16: the default, 32: the refine_vigor recipe)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    refiner = registry.build("refiner", {"name": "correlation"}).eval()
-    print(f"| side | headings | query + {args.tiles} tiles (ms) | {args.tiles} tiles encoded (ms) | match (ms) |")
-    print("|---|---|---|---|---|")
-    for side in args.sides:
+    print(f"| width | side | headings | query + {args.tiles} tiles (ms) | {args.tiles} tiles encoded (ms) | match (ms) |")
+    print("|---|---|---|---|---|---|")
+    for width, side in ((w, s) for w in args.widths for s in args.sides):
+        refiner = registry.build("refiner", {"name": "correlation", "width": width, "channels": width}).eval()
         query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
         for bins in args.bins:
             headings = torch.arange(bins) * (360.0 / bins)
@@ -54,7 +56,8 @@ def main() -> None:
                 maps = refiner.encode_query(query).expand(args.tiles, -1, -1, -1)
                 tile_ms = median_ms(lambda: refiner.encode_reference(tiles), args.repeats)
                 match_ms = median_ms(lambda: refiner.match(maps, encoded, headings), args.repeats)
-            print(f"| {side} | {bins} | {median_ms(whole, args.repeats):.1f} | {tile_ms:.1f} | {match_ms:.1f} |")
+            print(f"| {width} | {side} | {bins} | {median_ms(whole, args.repeats):.1f} | {tile_ms:.1f} | "
+                  f"{match_ms:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

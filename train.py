@@ -14,13 +14,9 @@ import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
-    from geoloc.launch.run import train
+    from geoloc.launch.run import objective, train
 
-    best = train(cfg)
-    # the value Hydra sweepers optimise: the metric that selected best.pt where the run names one (trainer.monitor:
-    # fine_median_m for the refinement stage), else the cross-view task's R@1
-    monitor = cfg.trainer.get("monitor") or "R@1"
-    return float(best.get(monitor, 0.0))
+    return objective(cfg, train(cfg))  # the value Hydra sweepers optimise (the task's sweep_metric)
 
 
 if __name__ == "__main__":

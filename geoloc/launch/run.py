@@ -50,6 +50,16 @@ def train(cfg: DictConfig) -> dict:
         dist.cleanup()
 
 
+def objective(cfg: DictConfig, best: dict) -> float:
+    """The value a Hydra sweeper optimises for a run of `cfg` that returned `best`: the metric the task names with
+    `sweep_metric(cfg)` (the cross-view task: the one that selected best.pt; MMDIP: the fused R@1), R@1 for a task
+    that names none. NaN where the run did not report it (a rank > 0 of MMDIP), never a made-up 0."""
+    task = find_task(cfg.get("task"))
+    key = task.sweep_metric(cfg) if callable(getattr(task, "sweep_metric", None)) else "R@1"
+    value = best.get(key)
+    return float(value) if isinstance(value, (int, float)) else float("nan")
+
+
 def command_line(cfg: DictConfig) -> list[str] | None:
     """The overrides the command line gave, as Hydra recorded them (None for a config composed in code without
     its Hydra node)."""

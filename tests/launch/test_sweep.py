@@ -252,3 +252,21 @@ def test_a_sweep_jobs_folder_works_as_a_ckpt_value_on_the_command_line():
     assert name == "0_ablation-no_msae_dataset.fov-90_seed-1"
     parsed = OverridesParser.create().parse_overrides([f"ckpt=multirun/2026-01-01_00-00-00_1/{name}/last.pt"])
     assert parsed[0].value() == f"multirun/2026-01-01_00-00-00_1/{name}/last.pt"
+
+
+def test_a_sweeper_optimises_the_metric_each_task_names(tmp_path):
+    """train.py returns objective(cfg, best): the cross-view run's monitored metric (trainer.monitor, else R@1),
+    MMDIP's fused R@1 whatever its phases monitor, and NaN, not 0, when the run did not report it."""
+    import math
+
+    from geoloc.launch.run import objective
+
+    from conftest import compose_train
+
+    crossview = compose_train([*TINY, "run_dir=unused"])
+    assert objective(crossview, {"R@1": 0.25, "R@5": 0.5}) == 0.25
+    refining = compose_train([*TINY, "run_dir=unused", "trainer.monitor=fine_median_m"])
+    assert objective(refining, {"R@1": 0.25, "fine_median_m": 3.5}) == 3.5
+    mmdip = compose_train(["task=mmdip", "run_dir=unused", "trainer.monitor=SSIM"])
+    assert objective(mmdip, {"R@1": 0.75, "phase2": {"SSIM": 0.5}}) == 0.75
+    assert math.isnan(objective(crossview, {}))  # nothing reported: no made-up value

@@ -11,8 +11,8 @@ import sys
 
 from geoloc import registry
 from geoloc.tasks.mmdip.config_nodes import config_nodes
-from geoloc.tasks.mmdip.pipeline import evaluate, train
+from geoloc.tasks.mmdip.pipeline import evaluate, sweep_metric, train
 
 registry.register("task", "mmdip", sys.modules[__name__])
 
-__all__ = ["config_nodes", "evaluate", "train"]
+__all__ = ["config_nodes", "evaluate", "sweep_metric", "train"]

@@ -17,7 +17,7 @@ from geoloc.cli import main as geoloc
 from geoloc.eval import GalleryIndex
 from geoloc.launch import run
 
-from conftest import REPO, TINY, compose_evaluate, compose_train
+from conftest import REPO, TINY, compose_evaluate, compose_train, write_cvusa
 
 RECALL = ("R@1", "R@5", "R@10", "R@1%")
 
@@ -33,11 +33,19 @@ def evaluate(tmp_path, ckpt, name, *extra):
                                           f"run_dir={tmp_path / name}", *extra]))
 
 
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """One epoch of the tiny network on tiny CVUSA pairs, trained once for both tests: its best.pt (the dataset's
+    root is stored in the checkpoint's config, so evaluate.py finds it)."""
+    folder = tmp_path_factory.mktemp("trained")
+    root = write_cvusa(folder / "cvusa", n_train=12, n_val=8)
+    run.train(compose_train([*TINY, f"dataset.root={root}", f"run_dir={folder / 'run'}", "trainer.max_epochs=1"]))
+    return folder / "run" / "best.pt"
+
+
 @pytest.mark.slow
-def test_a_torchrun_gallery_equals_the_one_process_gallery(tiny_cvusa, tmp_path):
-    run_dir = tmp_path / "run"
-    run.train(compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={run_dir}", "trainer.max_epochs=1"]))
-    ckpt = run_dir / "best.pt"
+def test_a_torchrun_gallery_equals_the_one_process_gallery(trained, tmp_path):
+    ckpt = trained
     single = evaluate(tmp_path, ckpt, "eval1", f"gallery.save={tmp_path / 'one'}")
     out = tmp_path / "metrics.json"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_addr=127.0.0.1",
@@ -72,12 +80,10 @@ def test_a_torchrun_gallery_equals_the_one_process_gallery(tiny_cvusa, tmp_path)
 @pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_submitit_launcher") is None,
                     reason="hydra-submitit-launcher is not installed")
-def test_shard_jobs_through_the_submitit_launcher_merge_into_the_one_job_gallery(tiny_cvusa, tmp_path):
+def test_shard_jobs_through_the_submitit_launcher_merge_into_the_one_job_gallery(trained, tmp_path):
     """docs/distributed.md's step 2 as written, with submitit's local executor in place of SLURM's: one Hydra sweep
     over gallery.shard_index, each job its own process, then one merge."""
-    run_dir = tmp_path / "run"
-    run.train(compose_train([*TINY, f"dataset.root={tiny_cvusa}", f"run_dir={run_dir}", "trainer.max_epochs=1"]))
-    ckpt = run_dir / "best.pt"
+    ckpt = trained
     single = evaluate(tmp_path, ckpt, "eval1", f"gallery.save={tmp_path / 'one'}")
     shards = tmp_path / "shards"
     cmd = [sys.executable, str(REPO / "evaluate.py"), "-m", "hydra/launcher=submitit_local", f"ckpt={ckpt}",

@@ -25,7 +25,8 @@ import numpy as np
 from geoloc.eval.keys import KeySet
 
 ECE_BINS = 15
-CALIBRATION_KEYS = KeySet({"ece_top1": 1.0})  # the top-1 confidence's ECE on the scored queries; worst: 1
+# the ECE of the top-1 confidence, and of a refiner's P(within 5 m), on the scored queries; worst: 1
+CALIBRATION_KEYS = KeySet({"ece_top1": 1.0, "ece_within_5m": 1.0})
 RETRIEVAL_FEATURES = ("top1_score", "top1_margin")
 RIDGE = 1e-3  # an L2 pull on the weights keeps them finite when the labels are separable
 LOWEST_SCORE = -1.0  # cosine similarity of unit descriptors: a gallery of one reference has this as its second score

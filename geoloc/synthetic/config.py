@@ -138,6 +138,10 @@ PRESETS = {
                        world_margin=1.5, cities=2, grid=3, train=4, val=3),
     "vigor_small": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
                         world_margin=2.0, cities=4, grid=8, train=64, val=32),
+    # vigor_small's world and training panoramas with 512 test panoramas a city (2,048; vigor_small's 128 are its
+    # first): the calibration's ECE needs >= 2,000 test queries (docs/confidence.md)
+    "vigor_small_2k": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
+                           world_margin=2.0, cities=4, grid=8, train=64, val=512),
     # the CPU recipes' larger worlds (conf/experiment/vigor_cpu.yaml, u1652_cpu.yaml): the small presets' image
     # sizes and test sets, six / eight times the training places (the small ones over-fit within a few epochs)
     "vigor_medium": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,

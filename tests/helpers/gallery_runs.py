@@ -29,6 +29,6 @@ def gallery_evaluate(monkeypatch, split, query, reference, meta=META, **cfg):
         return {k: given[k] for k in sides}
 
     monkeypatch.setattr(crossview_gallery, "encode_split", encode_split)
-    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]))
+    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=query.shape[1]), refiner=None)  # retrieval alone
     engine = SimpleNamespace(device=torch.device("cpu"))
     return crossview_gallery.evaluate(task, engine, EvalData(split), 4, GalleryConfig(**cfg), meta)

@@ -10,7 +10,10 @@ reference keeps its best-scoring candidate: the score ranks the references, the 
 
 The confidence (docs/confidence.md) is the gallery's calibrated P(top-1 tile right), from the top-1 score and its
 margin over the second; it is given where the query's condition is the one it was fitted in (the heading given,
-exactly, at the fitted field of view), and `abstain=` marks answers below a threshold.
+exactly, at the fitted field of view), and `abstain=` marks answers below a threshold. A refined tile adds its own
+`confidence_within_5m`: the gallery's calibrated P(the refined position is within 5 m | the tile holds the camera),
+from the refiner's mass within 5 m; given where the refiner searches the heading itself (trained with an unknown
+heading) or the query's heading is given exactly.
 """
 
 from __future__ import annotations
@@ -31,8 +34,8 @@ from geoloc.data.relevance import Relevance
 from geoloc.eval.calibration import Calibrator, retrieval_features
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview import (POSITION_KEYS, TOP1, CrossViewEncoder, LocalizationResult, calibrators,
-                                    open_gallery)
+from geoloc.tasks.crossview import (POSITION_KEYS, TOP1, WITHIN_5M, CrossViewEncoder, LocalizationResult,
+                                    calibrators, open_gallery, refine_features)
 from geoloc.tasks.crossview.views import headings_around
 
 CANDIDATES_PER_PASS = 12  # candidate headings encoded per forward pass: bounds the activations of a heading search
@@ -51,6 +54,7 @@ class Localizer:
         self.encoder, self.index, self.places, self.meta = encoder, index, places, info
         self.calibration = calibration  # the gallery's calibration.json (None: saved without one)
         self.calibrator: Calibrator | None = calibrators(calibration).get(TOP1)
+        self.within: Calibrator | None = calibrators(calibration).get(WITHIN_5M)  # the refiner's, where fitted
         self.limits = limits.limits() if limits is not None else QueryLimits()
         # candidate headings of the search: as asked, else as the checkpoint's dataset config says
         self.device = encoder.device
@@ -81,10 +85,18 @@ class Localizer:
     def calibration_info(self) -> dict:
         """{"calibrated": True, "condition": what queries the confidence holds for, "fitted_on"} or
         {"calibrated": False, "why": ...}."""
+        record = self.calibration or {}
         if self.calibrator is None:
-            why = (self.calibration or {}).get("why", "the gallery was saved without a calibration.json")
-            return {"calibrated": False, "why": why}
-        return {"calibrated": True, "condition": self.calibrator.condition, "fitted_on": self.calibrator.fitted_on}
+            info = {"calibrated": False, "why": record.get("why", "the gallery was saved without a calibration.json")}
+        else:
+            info = {"calibrated": True, "condition": self.calibrator.condition, "fitted_on": self.calibrator.fitted_on}
+        if self.encoder.refiner is not None:
+            info[WITHIN_5M] = ({"calibrated": False, "why": record.get("refiner_why", "the gallery was saved without "
+                                                                         "the refiner's calibration")}
+                               if self.within is None else
+                               {"calibrated": True, "condition": self.within.condition,
+                                "fitted_on": self.within.fitted_on})
+        return info
 
     def calibrated_for(self, query: QuerySettings) -> bool:
         """Whether the confidence holds for a query of these settings: the heading given exactly, at the field of
@@ -167,6 +179,11 @@ class Localizer:
         query, inputs = self.encoder.refine_inputs(image, answer.heading_deg, tiles, view=self.view)
         rows = [hit["row"] for hit in answer.topk]
         out = self.encoder.refine(query, inputs, self.places.reference_extent_m[rows])
+        # P(within 5 m | the tile holds the camera) where it holds: the refiner searches the heading, or it is given
+        within = None
+        if self.within is not None and (self.encoder.refine_config.orientation_noise_deg >= 180.0
+                                        or answer.heading_source == "given"):
+            within = self.within.probability(refine_features(out["mass"]))
         for i, hit in enumerate(answer.topk):
             centre = self.places.reference_positions[hit["row"]]
             east, north = out["offset_m"][i]
@@ -174,6 +191,7 @@ class Localizer:
             hit["refined_position"] = {**dict(zip(POSITION_KEYS[self.places.kind], map(float, where))),
                                        "heading_deg": float((hit["heading_deg"] + out["heading_offset_deg"][i]) % 360),
                                        "mass_5m": float(out["mass"][i]),
+                                       **({} if within is None else {"confidence_within_5m": float(within[i])}),
                                        **_tile_pixel(east, north, tiles[i].shape[:2],
                                                      self.places.reference_extent_m[hit["row"]])}
         answer.refined_position = dict(answer.topk[0]["refined_position"])

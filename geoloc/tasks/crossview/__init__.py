@@ -14,16 +14,15 @@ import sys
 from geoloc import registry
 from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
-from geoloc.tasks.crossview.confidence import TOP1, calibrators
+from geoloc.tasks.crossview.confidence import TOP1, WITHIN_5M, calibrators, refine_features
 from geoloc.tasks.crossview.gallery_folder import SavedGallery, open_gallery
 from geoloc.tasks.crossview.gallery_shards import merge_shards
 from geoloc.tasks.crossview.localization import LocalizationResult
 from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
-from geoloc.tasks.crossview.run import evaluate, train
+from geoloc.tasks.crossview.run import evaluate, sweep_metric, train
 
 registry.register("task", "crossview", sys.modules[__name__])
 
 __all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "SavedGallery",
-           "TOP1", "calibrators", "canonical_config", "config_nodes", "evaluate", "merge_shards", "open_gallery",
-           "read_places",
-           "train"]
+           "TOP1", "WITHIN_5M", "calibrators", "canonical_config", "config_nodes", "evaluate", "merge_shards",
+           "open_gallery", "read_places", "refine_features", "sweep_metric", "train"]

@@ -1,15 +1,22 @@
 """Retrieval confidence: P(the top-1 reference is the query's positive), fitted when a gallery is saved.
 
-The rule (docs/confidence.md): the labelled queries are the train split's last `dataset.calibration_holdout`
-queries, which training never saw (datasets.calibration_data). Each is scored against the gallery's references
-plus its own positive where the gallery lacks it (a one-to-one split's train tiles are not in the test gallery), so
-the answers it fits face the gallery's distractors. "Right" is the scorer's rank rule: no reference strictly above
-the positive (R@1's hit). The features are the top-1 score and its margin over the second (calibration.py). The
-calibrator holds for the condition it was fitted in: the heading given (the held-out queries are encoded at
-their known heading) at the checkpoint's field of view.
+The rule (docs/confidence.md): the labelled queries are `dataset.calibration_holdout` train queries spread evenly
+over the split (datasets.holdout_rows), which training never saw (datasets.calibration_data). Each is scored
+against the gallery's references plus its own positive where the gallery lacks it (a one-to-one split's train
+tiles are not in the test gallery), so the answers it fits face the gallery's distractors. "Right" is the scorer's
+rank rule: no reference strictly above the positive (R@1's hit). The features are the top-1 score and its margin
+over the second (calibration.py). The calibrator holds for the condition it was fitted in: the heading given (the
+held-out queries are encoded at their known heading) at the checkpoint's field of view.
 
-calibration.json (saved with the gallery) holds {"calibrated": true, "targets": {"top1": Calibrator}} or
-{"calibrated": false, "why": ...}; a second target (a refiner's "within_5m") is one more entry of "targets".
+A checkpoint with a refiner adds a second target, "within_5m": P(the refined position is within 5 m of the truth,
+given that the tile holds the camera). Each held-out query is refined in its positive tile (the fine-grained
+protocol, at the refiner's test headings); the feature is the log-odds of the refiner's probability mass within
+5 m of its answer (Refinement.mass_within). It is the refinement's own confidence: an end-to-end answer is within
+5 m only if its tile is right too, which the top-1 confidence gives.
+
+calibration.json (saved with the gallery) holds {"calibrated": true, "targets": {"top1": Calibrator, ...}} or
+{"calibrated": false, "why": ...}; "calibrated" is the top-1 confidence's. A refiner's "within_5m" is one more
+entry of "targets" when it was fitted, else "refiner_why" says why not.
 """
 
 from __future__ import annotations
@@ -27,6 +34,9 @@ from geoloc.eval.gallery import GalleryIndex
 from geoloc.eval.scoring import rank
 
 TOP1 = "top1"
+WITHIN_5M = "within_5m"
+REFINE_FEATURES = ("mass_5m_logit",)
+MASS_CLIP = 1e-6  # a mass of exactly 0 or 1 has infinite log-odds
 NO_HOLDOUT = ("no labelled queries were kept out of training (the checkpoint was trained with "
               "dataset.calibration_holdout=0): train with dataset.calibration_holdout=N (e.g. a quarter of the train "
               "queries) and save the gallery again to have a calibrated confidence")
@@ -80,21 +90,47 @@ def uncalibrated(why: str) -> dict:
     return {"calibrated": False, "why": why}
 
 
+def refine_features(mass) -> np.ndarray:
+    """(Q,) probability masses within 5 m -> (Q, 1) their log-odds: Platt scaling's score."""
+    m = np.clip(np.asarray(mass, np.float64), MASS_CLIP, 1.0 - MASS_CLIP)
+    return np.log(m / (1.0 - m))[:, None]
+
+
+def fit_within(mass, error_m, radius_m: float, condition: dict, rule: str) -> Calibrator | str:
+    """The "within_5m" calibrator of held-out queries refined in their positive tiles ((Q,) masses and metre
+    errors), or why there is none."""
+    right = np.asarray(error_m) <= radius_m
+    if right.all() or not right.any():
+        return (f"the {len(right)} held-out queries were all {'within' if right.all() else 'beyond'} {radius_m:g} m: "
+                "no answer to learn the refiner's confidence from; keep more queries out of training")
+    return fit_calibrator(refine_features(mass), right, WITHIN_5M, REFINE_FEATURES, condition, rule)
+
+
+def with_refiner(record: dict, fitted: Calibrator | str) -> dict:
+    """calibration.json's record with the refiner's target added, or the reason it has none."""
+    if isinstance(fitted, str):
+        return {**record, "refiner_why": fitted}
+    return {**record, "targets": {**record.get("targets", {}), WITHIN_5M: fitted.to_json()}}
+
+
 def calibrators(record: dict | None) -> dict[str, Calibrator]:
-    """{target: Calibrator} of a calibration.json record (None: a gallery saved without one: none)."""
-    if not record or not record.get("calibrated"):
+    """{target: Calibrator} of a calibration.json record (None: a gallery saved without one: none). The top-1
+    target is there only when the record is "calibrated"; a refiner's target whenever it was fitted."""
+    if not record:
         return {}
     return {target: Calibrator.from_json(entry, f"calibration.json target {target!r}")
-            for target, entry in record["targets"].items()}
+            for target, entry in record.get("targets", {}).items()
+            if target != TOP1 or record.get("calibrated")}
 
 
 def confidence_report(calibrator: Calibrator, features: np.ndarray, right: np.ndarray,
                       figure: Path | None = None) -> dict:
-    """{"ece_top1": ...} of the scored queries; with `figure`, their reliability and coverage-accuracy curves."""
+    """{"ece_<target>": ...} of the scored answers (ece_top1, ece_within_5m); with `figure`, their reliability and
+    coverage-accuracy curves."""
     probability = calibrator.probability(features)
     ece = expected_calibration_error(probability, right)
     if figure is not None:
         from geoloc.eval.plots import confidence_figure
 
         confidence_figure(figure, probability, right, ece, *coverage_accuracy(probability, right))
-    return {"ece_top1": ece}
+    return {f"ece_{calibrator.target}": ece}

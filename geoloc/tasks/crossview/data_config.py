@@ -53,7 +53,7 @@ class CrossViewDataConfig:
     resize_interpolation: str = "area"
     max_train: int = 0  # 0 = all; for quick runs (one-to-one splits keep their pairs; others cut the queries)
     max_val: int = 0
-    calibration_holdout: int = 0  # the train split's last N queries: kept out of training, they fit the confidence
+    calibration_holdout: int = 0  # N train queries spread over the split: kept out of training, they fit the confidence
 
     def __post_init__(self):
         if self.alignment not in ALIGNMENTS:

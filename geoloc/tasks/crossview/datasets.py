@@ -44,8 +44,9 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
         raise ConfigError(f"dataset {cfg.name!r} has panorama queries: dataset.aerial_rotation_deg turns the tile "
                           "alone, which breaks its north alignment with the panorama; set "
                           "dataset.aerial_rotation_deg=0 (dataset.joint_flip_rotate turns both consistently)")
-    if split == "train" and cfg.calibration_holdout:
-        out = limited(out, out.num_queries - _holdout(cfg, out))  # the held-out tail is never trained on
+    if split == "train" and cfg.calibration_holdout:  # the held-out queries are never trained on
+        held = set(holdout_rows(out.num_queries, _holdout(cfg, out)).tolist())
+        out = rows_of(out, [i for i in range(out.num_queries) if i not in held])
     limit = cfg.max_train if split == "train" else cfg.max_val
     if limit and limit < out.num_queries:
         out = limited(out, limit)
@@ -55,8 +56,29 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
 
 def limited(split: RetrievalSplit, n: int) -> RetrievalSplit:
     """The first n queries; a one-to-one split keeps its pairs (the first n references too)."""
+    return rows_of(split, range(n))
+
+
+def rows_of(split: RetrievalSplit, rows) -> RetrievalSplit:
+    """The queries `rows` (ascending) of `split`; a one-to-one split keeps its pairs (those references too, pair i
+    of the result holding reference i)."""
+    rows = np.asarray(list(rows), dtype=np.int64)
     cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
-    return replace(split, **{k: None if getattr(split, k) is None else getattr(split, k)[:n] for k in cut})
+
+    def take(values):
+        return [values[i] for i in rows] if isinstance(values, list) else values[rows]
+
+    out = {k: None if getattr(split, k) is None else take(getattr(split, k)) for k in cut}
+    if split.one_to_one:
+        out["positives"] = np.arange(len(rows))
+    return replace(split, **out)
+
+
+def holdout_rows(num_queries: int, n: int) -> np.ndarray:
+    """The n query rows dataset.calibration_holdout keeps out of training: spread evenly over the split (row
+    floor((i + 1) Q / n) - 1 for i < n, the last row among them), so that a split listed city by city (VIGOR) or
+    place by place gives held-out queries of every part of it, as its test queries are."""
+    return (np.arange(1, n + 1) * num_queries) // n - 1
 
 
 def _holdout(cfg: CrossViewDataConfig, train: RetrievalSplit) -> int:
@@ -68,14 +90,9 @@ def _holdout(cfg: CrossViewDataConfig, train: RetrievalSplit) -> int:
 
 
 def held_out(split: RetrievalSplit, n: int) -> RetrievalSplit:
-    """The last n queries of `split` (what dataset.calibration_holdout keeps out of training); a one-to-one split
-    keeps its pairs (the last n references, query i matching reference i)."""
-    start = split.num_queries - n
-    cut = PER_QUERY + (PER_REFERENCE if split.one_to_one else ())
-    tail = {k: None if getattr(split, k) is None else getattr(split, k)[start:] for k in cut}
-    if split.one_to_one:
-        tail["positives"] = np.arange(n)
-    return replace(split, **tail)
+    """The n queries of `split` that dataset.calibration_holdout keeps out of training (holdout_rows); a one-to-one
+    split keeps its pairs."""
+    return rows_of(split, holdout_rows(split.num_queries, n))
 
 
 def paths_to_check(split: RetrievalSplit) -> list[Path]:
@@ -266,15 +283,16 @@ def build(cfg: CrossViewDataConfig, reader: dict, split: str, train: bool, augme
     return CrossViewPairs(data, cfg, train=train, augment_seed=augment_seed, views=pairing, refine=refine)
 
 
-def calibration_data(cfg: CrossViewDataConfig, reader: dict) -> EvalData | None:
-    """The labelled queries that fit the confidence: the train split's last dataset.calibration_holdout queries
-    (kept out of training), at the known heading; None when the checkpoint kept none."""
+def calibration_data(cfg: CrossViewDataConfig, reader: dict, refine: RefineConfig | None = None) -> EvalData | None:
+    """The labelled queries that fit the confidence: the dataset.calibration_holdout train queries spread over the
+    split (kept out of training), at the known heading (with `refine`, also the refiner's inputs at its test headings);
+    None when the checkpoint kept none."""
     if not cfg.calibration_holdout:
         return None
     train = registry.build("dataset", reader, root=cfg.root, split="train")
     split = held_out(train, _holdout(cfg, train))
     check_files(paths_to_check(split), split.root, "train", cfg.check_files)
-    return eval_sets(replace(cfg, random_heading=False), split)
+    return eval_sets(replace(cfg, random_heading=False), split, refine)
 
 
 def build_eval(cfg: CrossViewDataConfig, reader: dict, split: str, refine: RefineConfig | None = None) -> EvalData:

@@ -49,3 +49,19 @@ def plain_pairs_loader(engine, pairs, batch_size: int):
     plain = copy.copy(pairs)
     plain.train = False
     return engine.loader(plain, batch_size, train=False)
+
+
+def encode_refine_maps(task, engine, data, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(query maps, reference maps) of an EvalData read with the refiner's inputs (datasets.eval_sets(refine=)),
+    through `task.refiner`'s two encoders, in dataset order: one-to-one pairs give reference i for query i."""
+    refiner = task.refiner
+    if data.pairs is not None:
+        out = _encoded(task, engine, engine.loader(data.pairs, batch_size, train=False),
+                       lambda batch: {"query": refiner.encode_query(batch["refine_query"]),
+                                      "reference": refiner.encode_reference(batch["refine_reference"])})
+        return out["query"], out["reference"]
+    sides = ((data.queries, refiner.encode_query), (data.references, refiner.encode_reference))
+    query, reference = (_encoded(task, engine, engine.loader(images, batch_size, train=False),
+                                 lambda batch, encoder=encoder: {"map": encoder(batch["refine_image"])})["map"]
+                        for images, encoder in sides)
+    return query, reference

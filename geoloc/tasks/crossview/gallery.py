@@ -45,9 +45,10 @@ from geoloc.eval.gallery import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, imp
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, calibrators, confidence_report, fit_top1,
-                                               index_answers, uncalibrated, with_positives)
+                                               index_answers, uncalibrated, with_positives, with_refiner)
 from geoloc.tasks.crossview.encode import encode, encode_images
 from geoloc.tasks.crossview.gallery_folder import open_codebook, open_gallery, save_gallery
+from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_within
 
 
 AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (benchmarks/README.md, 1M references)
@@ -206,6 +207,7 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
         plan = split_plan(split, exact=index.kind == "flat")
         metrics = guarded(lambda: index_metrics(index, query, split), spread, plan)
         return {**metrics, **scored_confidence(saved.calibration, index, query, split, run_dir),
+                **scored_within(saved.calibration, task, engine, data, batch_size, run_dir),
                 "num_references": len(index)}
     index_knobs(cfg, split.num_references, task.model_cfg.dim)  # a kind that cannot train fails before encoding
     desc = encode_split(task, engine, data, batch_size)
@@ -228,7 +230,8 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
     confidence = scored_confidence(record, built[0], query, split, run_dir) if built else {}
-    return {**metrics, **confidence, "num_references": len(reference)}
+    return {**metrics, **confidence, **scored_within(record, task, engine, data, batch_size, run_dir),
+            "num_references": len(reference)}
 
 
 def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
@@ -280,14 +283,22 @@ def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig
 def fitted_confidence(task, engine, held_out: EvalData | None, batch_size: int, reference: torch.Tensor,
                       split, fov: float) -> dict:
     """calibration.json's record: the top-1 confidence fitted on the held-out queries against this gallery's
-    references (confidence.py), or why there is none."""
+    references (confidence.py), or why there is none; with a refiner, its "within_5m" too
+    (refine_confidence.py)."""
+    record = top1_confidence(task, engine, held_out, batch_size, reference, split, fov)
+    within = fitted_within(task, engine, held_out, batch_size)
+    return record if within is None else with_refiner(record, within)
+
+
+def top1_confidence(task, engine, held_out: EvalData | None, batch_size: int, reference: torch.Tensor,
+                    split, fov: float) -> dict:
     if held_out is None:
         return uncalibrated(NO_HOLDOUT)
     held = encode_split(task, engine, held_out, batch_size)
     check_descriptors(held["query"], held["reference"])
     gallery, rows = with_positives(reference, split.references, held["reference"], held_out.split.references,
                                    held_out.split.positives)
-    rule = (f"the last {held_out.split.num_queries} queries of {held_out.split.name} (dataset.calibration_holdout),"
+    rule = (f"{held_out.split.num_queries} queries spread over {held_out.split.name} (dataset.calibration_holdout),"
             f" kept out of training, against the {len(split.references)} references of {split.name} plus their "
             "own positives")
     return fit_top1(held["query"], gallery, rows, fov, rule)

@@ -29,6 +29,7 @@ from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, 
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
 
 STAGES = ("refine", "joint")
+RADIUS_M = 5.0  # the refined answer's confidence is P(error <= RADIUS_M) (confidence.py's "within_5m")
 
 
 @dataclass
@@ -162,15 +163,21 @@ def fine_plan(split: RetrievalSplit, refine: RefineConfig) -> list:
 
 @torch.no_grad()
 def refined(refiner, query_maps: torch.Tensor, reference_maps: torch.Tensor, tiles: torch.Tensor,
-            candidates: torch.Tensor, chunk: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each query's map matched against reference map tiles[i]: ((Q, 2) tile fractions, (Q,) headings)."""
-    positions, headings = [], []
+            candidates: torch.Tensor, chunk: int = 64,
+            extent_m: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Each query's map matched against reference map tiles[i]: ((Q, 2) tile fractions, (Q,) headings, and with
+    extent_m ((Q, 2) metres each query's tile covers) the (Q,) probability mass within RADIUS_M of each position,
+    the refiner's own score that a calibrator maps to P(error <= RADIUS_M); else None)."""
+    positions, headings, masses = [], [], []
     for start in range(0, query_maps.shape[0], chunk):
         part = slice(start, start + chunk)
         out = refiner.match(query_maps[part], reference_maps[tiles[part]], candidates)
         positions.append(out.position().float().cpu())
         headings.append(out.heading().float().cpu())
-    return torch.cat(positions), torch.cat(headings)
+        if extent_m is not None:
+            extent = torch.as_tensor(np.asarray(extent_m[part], np.float64), dtype=torch.float32)
+            masses.append(out.mass_within(RADIUS_M, extent.to(query_maps.device)).float().cpu())
+    return torch.cat(positions), torch.cat(headings), torch.cat(masses) if masses else None
 
 
 def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidates: torch.Tensor,
@@ -178,21 +185,39 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
                  query_descriptors: torch.Tensor | None = None,
                  reference_descriptors: torch.Tensor | None = None) -> dict[str, float]:
     """fine_plan(split)'s metrics: each query refined in its positive tile (the fine-grained protocol), and in its
-    top-1 retrieved tile (end to end: the tile centre's position plus the refined offset, against the query's)."""
+    top-1 retrieved tile (end to end: the tile centre's position plus the refined offset, against the query's;
+    left out without the descriptors)."""
     out: dict[str, float] = {}
     plan = fine_plan(split, refine)
     positives = torch.from_numpy(split.positives)
-    position, heading = refined(refiner, query_maps, reference_maps, positives, candidates)
+    position, heading, _ = refined(refiner, query_maps, reference_maps, positives, candidates)
     if FINE_KEYS in plan:
-        truth = np.stack([truth_fraction(split, i, int(t)) for i, t in enumerate(split.positives)])
-        out.update(fine_summary(fraction_error_m(position.numpy(), truth, split, split.positives)))
+        out.update(fine_summary(positive_errors_m(position.numpy(), split)))
     if FINE_HEADING_KEYS in plan:
         out.update(heading_summary(circular_error_deg(heading.numpy(), true_heading.cpu().numpy())))
-    if E2E_KEYS in plan:
+    if E2E_KEYS in plan and query_descriptors is not None:
         top1 = top_k(query_descriptors, reference_descriptors, 1)[1][:, 0].cpu()
-        e2e_position, _ = refined(refiner, query_maps, reference_maps, top1, candidates)
+        e2e_position, _, _ = refined(refiner, query_maps, reference_maps, top1, candidates)
         out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), top1.numpy(), split)))
     return out
+
+
+def fine_answers(refiner, split: RetrievalSplit, candidates: torch.Tensor, query_maps: torch.Tensor,
+                 reference_maps: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Each query refined in its positive tile: ((Q,) the probability mass within RADIUS_M of its position, (Q,)
+    its metre error): what the "within_5m" confidence is fitted on and scored against (confidence.py)."""
+    if split.reference_metres_per_px is None:
+        raise ValueError(f"{split.name}: its tiles have no metres per pixel, so a metre error has no meaning")
+    positives = torch.from_numpy(split.positives)
+    extent = split.reference_extent_m[split.positives]
+    position, _, mass = refined(refiner, query_maps, reference_maps, positives, candidates, extent_m=extent)
+    return mass.double().numpy(), positive_errors_m(position.numpy(), split)
+
+
+def positive_errors_m(position: np.ndarray, split: RetrievalSplit) -> np.ndarray:
+    """(Q,) metres between each query's (Q, 2) refined tile fraction in its positive tile and the truth."""
+    truth = np.stack([truth_fraction(split, i, int(t)) for i, t in enumerate(split.positives)])
+    return fraction_error_m(position, truth, split, split.positives)
 
 
 def fraction_error_m(estimate: np.ndarray, truth: np.ndarray, split: RetrievalSplit, tiles) -> np.ndarray:

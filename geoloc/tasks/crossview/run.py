@@ -67,6 +67,12 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
     return best
 
 
+def sweep_metric(cfg: DictConfig) -> str:
+    """The key of train()'s metrics a Hydra sweep optimises: the one that selects best.pt (trainer.monitor, else
+    the task's own, R@1)."""
+    return OmegaConf.select(cfg, "trainer.monitor") or CrossViewTask.monitor
+
+
 def evaluate(cfg: DictConfig, state: dict) -> dict:
     """evaluate.py's work: rebuild model and transforms from the checkpoint's config, score a split; the launcher
     writes the metrics to `metrics_out`."""
@@ -93,7 +99,7 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
                               "dataset.random_heading=true (K candidate headings per query) evaluate without gallery.*")
         meta = {"ckpt": str(Path(run.job.ckpt).resolve()), "dataset": run.data.name,
                 "model_fingerprint": ckpt_io.weights_fingerprint(task.model)}
-        held_out = calibration_data(run.data, run.reader) if run.gallery.save else None
+        held_out = calibration_data(run.data, run.reader, run.components.refine) if run.gallery.save else None
         metrics = gallery.evaluate(task, trainer.engine, eval_data, run.batch_size, run.gallery, meta, held_out,
                                    run.data.fov, run.run_dir)
     else:

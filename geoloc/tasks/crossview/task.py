@@ -115,7 +115,7 @@ class CrossViewTask(Task):
     def training_step(self, batch, engine):
         if self.refine is None:
             return self._retrieval_step(batch)
-        out = self.refiner(batch["refine_query"], batch["refine_reference"], self._candidates())
+        out = self.refiner(batch["refine_query"], batch["refine_reference"], self.refine_candidates())
         refine_loss = out.nll(batch["tile_px"], batch["refine_heading"].float()).mean()
         if self.refine.stage == "refine":
             return {"loss": refine_loss, "refine_loss": refine_loss.detach()}
@@ -123,7 +123,7 @@ class CrossViewTask(Task):
         return {**retrieval, "loss": retrieval["loss"] + self.refine.weight * refine_loss,
                 "refine_loss": refine_loss.detach()}
 
-    def _candidates(self):
+    def refine_candidates(self):
         """The heading bins the refiner scores: north alone when the heading is known (RefineConfig.candidates)."""
         return self.refine.candidates(getattr(self.refiner, "heading_bins", 36))
 
@@ -212,7 +212,7 @@ class CrossViewTask(Task):
         else:
             maps = (outputs["refine_query_map"], outputs["refine_reference_map"], outputs["refine_heading"])
             descriptors = (outputs["query"], outputs["reference"])
-        return fine_metrics(self.refiner, self.split, self.refine, self._candidates(), *maps, *descriptors)
+        return fine_metrics(self.refiner, self.split, self.refine, self.refine_candidates(), *maps, *descriptors)
 
     def _retrieval_metrics(self, outputs):
         if "query" in outputs and isinstance(outputs["query"], dict):  # two loaders

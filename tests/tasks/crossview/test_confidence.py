@@ -16,7 +16,7 @@ from geoloc.eval.calibration import expected_calibration_error, fit_calibrator
 from geoloc.tasks.crossview import gallery as crossview_gallery
 from geoloc.tasks.crossview.confidence import NO_HOLDOUT, calibrators, with_positives
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.datasets import EvalData, calibration_data, read_split
+from geoloc.tasks.crossview.datasets import EvalData, calibration_data, holdout_rows, read_split
 from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.gallery_folder import open_gallery
 from helpers.gallery_runs import META, pairs_split
@@ -24,16 +24,24 @@ from helpers.gallery_runs import META, pairs_split
 from conftest import write_cvusa
 
 
-def test_the_last_train_queries_are_held_out_of_training_and_fit_the_confidence(tmp_path):
+def test_train_queries_spread_over_the_split_are_held_out_of_training_and_fit_the_confidence(tmp_path):
     root = write_cvusa(tmp_path / "cvusa", n_train=10, n_val=3)
     reader = {"name": "cvusa", "module": None}
     full = read_split(CrossViewDataConfig(name="cvusa", root=str(root)), reader, "train")
     cfg = CrossViewDataConfig(name="cvusa", root=str(root), calibration_holdout=4)
     trained = read_split(cfg, reader, "train")
     held = calibration_data(cfg, reader).split
-    assert trained.queries == full.queries[:6] and trained.references == full.references[:6]
-    assert held.queries == full.queries[6:] and held.references == full.references[6:]
-    assert held.one_to_one and not set(held.queries) & set(trained.queries)
+    held_rows, trained_rows = [1, 4, 6, 9], [0, 2, 3, 5, 7, 8]  # floor((i + 1) 10 / 4) - 1
+    assert trained.queries == [full.queries[i] for i in trained_rows]
+    assert trained.references == [full.references[i] for i in trained_rows]
+    assert held.queries == [full.queries[i] for i in held_rows]
+    assert held.references == [full.references[i] for i in held_rows]
+    assert held.one_to_one and trained.one_to_one and not set(held.queries) & set(trained.queries)
+    # a split listed city by city (VIGOR: 4 cities of 64 panoramas) gives each city its share, not the last city
+    rows = holdout_rows(256, 64)
+    assert len(set(rows.tolist())) == 64 and rows[-1] == 255
+    assert np.bincount(rows // 64).tolist() == [16, 16, 16, 16]
+    assert holdout_rows(7, 7).tolist() == list(range(7))
     assert calibration_data(CrossViewDataConfig(name="cvusa", root=str(root)), reader) is None
     with pytest.raises(ConfigError, match="calibration_holdout=10 keeps every one of the 10 train queries"):
         read_split(CrossViewDataConfig(name="cvusa", root=str(root), calibration_holdout=10), reader, "train")
@@ -82,7 +90,8 @@ def run_gallery(monkeypatch, tmp_path, descriptors, held: bool, **cfg):
                         lambda task, engine, d, batch_size, sides=("query", "reference"), rows=None:
                         dict(zip(("query", "reference"), descriptors[name[id(d)]])))
     engine = SimpleNamespace(device=torch.device("cpu"))
-    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=descriptors["test"][1].shape[1]))  # what evaluate reads
+    # what evaluate reads of the task: its descriptor size, and no refiner
+    task = SimpleNamespace(model_cfg=SimpleNamespace(dim=descriptors["test"][1].shape[1]), refiner=None)
     return crossview_gallery.evaluate(task, engine, data["test"], 4, GalleryConfig(**cfg), META,
                                       data["held"] if held else None, 360.0, tmp_path / "run")
 

@@ -14,6 +14,7 @@ from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import run
 from geoloc.synthetic import generate
+from geoloc.tasks.crossview.confidence import calibrators, fit_within, refine_features
 
 from conftest import TINY, compose_evaluate, compose_train
 from helpers.crossview_runs import task_of
@@ -48,7 +49,8 @@ def test_refinement_stage_from_a_retrieval_checkpoint(vigor_root, tmp_path):
     run.train(compose_train([*SMALL, f"dataset.root={vigor_root}", "trainer.max_epochs=1", f"run_dir={retrieval}"]))
     refine_dir = tmp_path / "refine"
     best = run.train(compose_train([*SMALL, *REFINE, f"dataset.root={vigor_root}", "trainer.max_epochs=2",
-                                    f"init_from={retrieval / 'last.pt'}", f"run_dir={refine_dir}"]))
+                                    "dataset.calibration_holdout=3", f"init_from={retrieval / 'last.pt'}",
+                                    f"run_dir={refine_dir}"]))
     for key in (*FINE, *E2E, "R@1", "median_m"):
         assert key in best, key
     assert "fine_heading_median_deg" not in best  # the heading is known
@@ -79,13 +81,27 @@ def test_refinement_stage_from_a_retrieval_checkpoint(vigor_root, tmp_path):
     run.evaluate(compose_evaluate([f"ckpt={refine_dir / 'last.pt'}", "dataset=vigor", f"dataset.root={vigor_root}",
                                    "dataset.cities=[Chicago,NewYork]", f"gallery.save={gallery}", "progress=false",
                                    f"run_dir={tmp_path / 'saving'}"]))
+    # the 3 held-out queries fit the refiner's P(within 5 m), or the record says why not (all right or all wrong)
+    record = json.loads((gallery / "calibration.json").read_text())
+    assert ("within_5m" in record.get("targets", {})) != ("refiner_why" in record)
+    if "within_5m" not in record.get("targets", {}):  # a calibrator of its own, to follow it into the answers
+        record["targets"] = {**record.get("targets", {}), "within_5m": fit_within(
+            [0.1, 0.4, 0.6, 0.9], [8.0, 3.0, 6.0, 1.0], 5.0, {"radius_m": 5.0}, "test").to_json()}
+        (gallery / "calibration.json").write_text(json.dumps(record))
     localizer = Localizer.load(refine_dir / "last.pt", gallery, device="cpu")
+    assert localizer.info()["calibration"]["within_5m"]["calibrated"] is True
+    within = calibrators(record)["within_5m"]
     query = next(iter(localizer.places.queries.values()))
     answer = localizer.localize(read_street(vigor_root / query["path"]), topk=3, heading=0,
                                 path=vigor_root / query["path"])
     out = answer.to_json()
     refined = out["refined_position"]
-    assert set(refined) == {"lat", "lon", "heading_deg", "mass_5m", "tile_px", "tile_size_px"}
+    assert set(refined) == {"lat", "lon", "heading_deg", "mass_5m", "confidence_within_5m", "tile_px",
+                            "tile_size_px"}
+    assert refined["confidence_within_5m"] == pytest.approx(
+        within.probability(refine_features([refined["mass_5m"]]))[0], abs=1e-6)
+    searched = localizer.localize(read_street(vigor_root / query["path"]), topk=3).to_json()
+    assert "confidence_within_5m" not in searched["refined_position"]  # a known-heading refiner, the heading searched
     assert 0.0 <= refined["mass_5m"] <= 1.0
     assert refined["heading_deg"] == 0.0  # trained with a known heading: the given one
     assert all("refined_position" in hit for hit in out["topk"])

@@ -80,6 +80,15 @@ function drawBest(answer) {
   tile.src = `/tiles/${encodeURIComponent(best.row)}`;
 }
 
+// The refined position, with the refiner's calibrated P(within 5 m) where the gallery gives it
+function refinedText(refined) {
+  let text = place(refined);
+  if (typeof refined.confidence_within_5m === "number") {
+    text += `; ${(100 * refined.confidence_within_5m).toFixed(1)}% that it is within 5 m, if the tile is right`;
+  }
+  return text;
+}
+
 function showAnswer(answer) {
   $("result").hidden = false;
   if (typeof answer.confidence === "number") {
@@ -94,7 +103,8 @@ function showAnswer(answer) {
   }
   setText("heading-out", `${fmt(answer.heading_deg, 1)}° from north (${answer.heading_source})`);
   setText("position", place(answer.position));
-  setText("refined", answer.refined_position ? place(answer.refined_position) : "none (the tile centre is the answer)");
+  setText("refined", answer.refined_position ? refinedText(answer.refined_position) :
+                                               "none (the tile centre is the answer)");
   const list = $("topk");
   list.replaceChildren();
   for (const hit of answer.topk || []) {

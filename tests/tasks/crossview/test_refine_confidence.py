@@ -1,0 +1,181 @@
+"""The refiner's confidence, P(within 5 m | the tile holds the camera): the mass and metre error of each query refined
+in its positive tile (brute force over the lattice), the fit on the held-out queries saved with the gallery, and the
+ECE and fine-grained metres evaluate.py reports from it."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.eval.calibration import expected_calibration_error, fit_calibrator
+from geoloc.models.refiners import Refinement
+from geoloc.tasks.crossview import gallery as crossview_gallery
+from geoloc.tasks.crossview import refine_confidence
+from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1, WITHIN_5M, calibrators,
+                                               fit_within, refine_features, with_refiner)
+from geoloc.tasks.crossview.datasets import EvalData
+from geoloc.tasks.crossview.gallery import GalleryConfig
+from geoloc.tasks.crossview.refine import fine_answers
+from helpers.gallery_runs import META
+
+LATTICE = 17  # the fake refiner's map: 17 x 17 positions over the tile
+SIDE_PX, METRES_PER_PX = 64, 0.5  # tiles of 32 m
+
+
+class GaussianGuess(torch.nn.Module):
+    """A refiner whose query map is its guess (row, col tile fractions) and a spread (metres): match gives the
+    Gaussian of that spread around the guess on the lattice; the reference map is ignored."""
+
+    def encode_query(self, images):
+        return images
+
+    def encode_reference(self, images):
+        return images
+
+    def match(self, query, reference, headings_deg):
+        ys = torch.linspace(0, 1, LATTICE, dtype=torch.float64)
+        d2 = ((ys[None, :, None] - query[:, 0, None, None]) ** 2 + (ys[None, None, :] - query[:, 1, None, None]) ** 2)
+        spread = (query[:, 2] / (SIDE_PX * METRES_PER_PX))[:, None, None]  # metres -> tile fractions
+        logits = (-0.5 * d2 / spread ** 2).flatten(1)
+        log_prob = torch.log_softmax(logits, 1).reshape(-1, 1, LATTICE, LATTICE)
+        return Refinement(log_prob.float(), torch.zeros(1))
+
+
+def tile_split(n: int, seed: int, name: str) -> RetrievalSplit:
+    """A one-to-one split of n tiles of 32 m, each query within 4 m of its tile's centre."""
+    rng = np.random.default_rng(seed)
+    return RetrievalSplit(name, "/data", [f"{name}q{i}.jpg" for i in range(n)], [f"{name}r{i}.jpg" for i in range(n)],
+                          np.arange(n), reference_size_px=np.full((n, 2), SIDE_PX),
+                          reference_metres_per_px=np.full(n, METRES_PER_PX),
+                          query_tile_px=rng.uniform(24, SIDE_PX - 24, size=(n, 2)))  # guesses stay off the edges
+
+
+def guesses(split: RetrievalSplit, seed: int) -> torch.Tensor:
+    """(Q, 3) query maps: the truth moved by a random error of 0-10 m, and a spread of 1-6 m."""
+    rng = np.random.default_rng(seed)
+    truth = split.query_tile_px / SIDE_PX
+    angle = rng.uniform(0, 2 * np.pi, split.num_queries)
+    error_m = rng.uniform(0, 10, split.num_queries)
+    moved = truth + (error_m / (SIDE_PX * METRES_PER_PX))[:, None] * np.stack([np.sin(angle), np.cos(angle)], 1)
+    return torch.tensor(np.column_stack([moved.clip(0, 1), rng.uniform(1, 6, split.num_queries)]))
+
+
+def brute_answers(split: RetrievalSplit, query: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(mass within 5 m of the estimate, metre error) by loops over the lattice."""
+    out = GaussianGuess().match(query, None, torch.zeros(1))
+    position = out.position().double().numpy()
+    prob = out.position_log_prob.exp().double().numpy()
+    step_m = SIDE_PX * METRES_PER_PX / (LATTICE - 1)
+    masses, errors = [], []
+    for i in range(split.num_queries):
+        at = position[i] * (LATTICE - 1)
+        masses.append(sum(prob[i, r, c] for r in range(LATTICE) for c in range(LATTICE)
+                          if math.hypot((r - at[0]) * step_m, (c - at[1]) * step_m) <= 5.0))
+        truth = split.query_tile_px[i] / SIDE_PX
+        errors.append(math.hypot(*((position[i] - truth) * SIDE_PX * METRES_PER_PX)))
+    return np.array(masses), np.array(errors)
+
+
+def test_fine_answers_are_the_mass_within_5m_and_the_metre_error_in_the_positive_tile():
+    split = tile_split(24, 0, "test")
+    query = guesses(split, 1)
+    mass, error = fine_answers(GaussianGuess(), split, torch.zeros(1), query, torch.zeros(24, 1))
+    expect_mass, expect_error = brute_answers(split, query)
+    assert mass == pytest.approx(expect_mass, abs=1e-5)
+    assert error == pytest.approx(expect_error, abs=1e-3)
+    # the parabola through a Gaussian's log-probabilities finds its centre: the error is the guess's own
+    guess_error = np.hypot(*((query[:, :2].numpy() - split.query_tile_px / SIDE_PX) * 32.0).T)
+    assert error == pytest.approx(guess_error, abs=1e-3)
+    assert 0.2 < (error <= 5).mean() < 0.8
+    with pytest.raises(ValueError, match="no metres per pixel"):
+        fine_answers(GaussianGuess(), RetrievalSplit("plain", "/d", ["q"], ["r"], [0]), torch.zeros(1),
+                     query[:1], torch.zeros(1, 1))
+
+
+def test_the_within_5m_calibrator_is_a_logistic_fit_on_the_mass_log_odds():
+    mass = np.array([0.05, 0.2, 0.5, 0.7, 0.9, 0.99, 1.0, 0.0])
+    error = np.array([9.0, 6.0, 4.0, 7.0, 2.0, 1.0, 0.5, 20.0])
+    fitted = fit_within(mass, error, 5.0, {"radius_m": 5.0}, "rule")
+    expect = fit_calibrator(np.log(np.clip(mass, 1e-6, 1 - 1e-6) / (1 - np.clip(mass, 1e-6, 1 - 1e-6)))[:, None],
+                            error <= 5, WITHIN_5M, REFINE_FEATURES)
+    assert fitted.weights == pytest.approx(expect.weights) and fitted.bias == pytest.approx(expect.bias)
+    assert fitted.weights[0] > 0  # more mass near the answer: more often within 5 m
+    edge = math.log(1e-6 / (1 - 1e-6))  # a mass of 0 or 1 is clipped 1e-6 inside
+    assert refine_features([0.0, 1.0]).ravel() == pytest.approx([edge, -edge])
+    assert "all within 5 m" in fit_within(mass, np.zeros(8), 5.0, {}, "rule")
+    # the record: the top-1 target only when "calibrated", the refiner's whenever fitted, else why not
+    record = with_refiner({"calibrated": False, "why": "no holdout"}, fitted)
+    assert set(calibrators(record)) == {WITHIN_5M}
+    assert with_refiner({"calibrated": False, "why": "x"}, "none fitted")["refiner_why"] == "none fitted"
+
+
+def refining_task():
+    refine = SimpleNamespace(orientation_noise_deg=0.0)
+    return SimpleNamespace(model_cfg=SimpleNamespace(dim=8), refiner=GaussianGuess(), refine=refine,
+                           refine_candidates=lambda: torch.zeros(1))
+
+
+def unit(rng, n, d=8):
+    x = rng.normal(size=(n, d))
+    return torch.tensor(x / np.linalg.norm(x, axis=1, keepdims=True), dtype=torch.float32)
+
+
+def run_gallery(monkeypatch, tmp_path, held: bool, **cfg):
+    """evaluate.py's gallery path on 300 test and 200 held-out tiles, descriptors and refiner maps given."""
+    rng = np.random.default_rng(5)
+    splits = {"test": tile_split(300, 2, "test"), "held": tile_split(200, 3, "held")}
+    data = {k: EvalData(v) for k, v in splits.items()}
+    name = {id(v): k for k, v in data.items()}
+    references = {k: unit(rng, v.num_queries) for k, v in splits.items()}
+    descriptors = {k: (torch.nn.functional.normalize(r + 0.9 * unit(rng, len(r)), dim=1), r)  # noisy positives
+                   for k, r in references.items()}
+    maps = {"test": guesses(splits["test"], 4), "held": guesses(splits["held"], 6)}
+    monkeypatch.setattr(crossview_gallery, "encode_split",
+                        lambda task, engine, d, batch_size, sides=("query", "reference"), rows=None:
+                        dict(zip(("query", "reference"), descriptors[name[id(d)]])))
+    monkeypatch.setattr(refine_confidence, "encode_refine_maps",
+                        lambda task, engine, d, batch_size: (maps[name[id(d)]], torch.zeros(len(maps[name[id(d)]]), 1)))
+    engine = SimpleNamespace(device=torch.device("cpu"))
+    metrics = crossview_gallery.evaluate(refining_task(), engine, data["test"], 4, GalleryConfig(**cfg), META,
+                                         data["held"] if held else None, 360.0, tmp_path / "run")
+    return metrics, splits, maps
+
+
+def test_a_saved_gallery_holds_the_refiners_confidence_and_evaluation_scores_it(monkeypatch, tmp_path):
+    (tmp_path / "run").mkdir()
+    folder = tmp_path / "gallery"
+    metrics, splits, maps = run_gallery(monkeypatch, tmp_path, True, save=str(folder))
+    record = json.loads((folder / "calibration.json").read_text())
+    stored = calibrators(record)[WITHIN_5M]
+    held_mass, held_error = brute_answers(splits["held"], maps["held"])
+    expect = fit_calibrator(refine_features(held_mass), held_error <= 5, WITHIN_5M, REFINE_FEATURES)
+    assert stored.weights == pytest.approx(expect.weights, rel=1e-3) and stored.bias == pytest.approx(expect.bias,
+                                                                                                       rel=1e-3)
+    assert stored.fitted_on["answers"] == 200 and stored.condition["orientation_noise_deg"] == 0.0
+    test_mass, test_error = brute_answers(splits["test"], maps["test"])
+    ece = expected_calibration_error(stored.probability(refine_features(test_mass)), test_error <= 5)
+    assert metrics["ece_within_5m"] == pytest.approx(ece, abs=1e-4)
+    assert metrics["fine_median_m"] == pytest.approx(np.median(test_error), abs=1e-3)
+    assert metrics["fine_within_5m"] == pytest.approx((test_error <= 5).mean())
+    assert (tmp_path / "run" / "confidence_within_5m.png").stat().st_size > 1000
+    # a refiner whose mass tracks its error is calibrated on other queries of the same kind
+    assert ece < 0.1
+    # read back with the gallery: the same ECE
+    loaded, _, _ = run_gallery(monkeypatch, tmp_path, False, load=str(folder))
+    assert loaded["ece_within_5m"] == pytest.approx(metrics["ece_within_5m"])
+    assert TOP1 in record["targets"]  # the retrieval confidence beside it
+
+
+def test_a_gallery_without_held_out_queries_has_no_refiner_confidence_and_still_reports_metres(monkeypatch,
+                                                                                                tmp_path):
+    folder = tmp_path / "gallery"
+    metrics, _, _ = run_gallery(monkeypatch, tmp_path, False, save=str(folder))
+    record = json.loads((folder / "calibration.json").read_text())
+    assert record == {"calibrated": False, "why": NO_HOLDOUT, "refiner_why": NO_HOLDOUT}
+    assert "ece_within_5m" not in metrics and "fine_median_m" in metrics
+    assert not (tmp_path / "run" / "confidence_within_5m.png").exists()

@@ -79,7 +79,7 @@ def text(driver, element_id: str) -> str:
 
 
 def shown_hits(driver) -> list[str]:
-    return [li.get_attribute("textContent") for li in driver.find_elements("css selector", "#topk li")]
+    return [li.get_attribute("textContent") for li in driver.find_elements("css selector", "#hits li")]
 
 
 def test_the_page_uploads_an_image_and_shows_the_answer_with_a_hostile_file_name_as_text(page, browser, tmp_path):
@@ -100,6 +100,12 @@ def test_the_page_uploads_an_image_and_shows_the_answer_with_a_hostile_file_name
     direct = localizer.localize(read_street(hostile), topk=3, heading=0.0, name=HOSTILE)
     hits = shown_hits(browser)
     assert len(hits) == 3
+    # the tiles are on the page, not inside another element that shares an id (the list once had the form's
+    # "topk" id, so its items went into the number field, present but never drawn)
+    assert browser.execute_script("const ids = [...document.querySelectorAll('[id]')].map(e => e.id);"
+                                  "return ids.length === new Set(ids).size")
+    assert all(li.is_displayed() and li.size["height"] > 0
+               for li in browser.find_elements("css selector", "#hits li"))
     for hit, row in zip(hits, direct.topk):
         assert f"#{row['rank']} score {row['score']:.3f}" in hit and row["path"] in hit
     assert text(browser, "confidence").startswith(f"{100 * direct.confidence:.1f}%")
@@ -108,7 +114,7 @@ def test_the_page_uploads_an_image_and_shows_the_answer_with_a_hostile_file_name
     assert text(browser, "status") == f"answered {HOSTILE}"
     # the tiles come from the service's /tiles route and load
     time.sleep(0.5)
-    loaded = browser.execute_script("return [...document.querySelectorAll('#topk img')].map(i => i.naturalWidth)")
+    loaded = browser.execute_script("return [...document.querySelectorAll('#hits img')].map(i => i.naturalWidth)")
     assert len(loaded) == 3 and all(width > 0 for width in loaded)
     browser.set_window_size(1280, 1400)  # the whole answer, top-k tiles included
     browser.save_screenshot(SCREENSHOT)

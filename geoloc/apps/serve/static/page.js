@@ -105,7 +105,7 @@ function showAnswer(answer) {
   setText("position", place(answer.position));
   setText("refined", answer.refined_position ? refinedText(answer.refined_position) :
                                                "none (the tile centre is the answer)");
-  const list = $("topk");
+  const list = $("hits");  // the list of tiles ("topk" is the form's number field)
   list.replaceChildren();
   for (const hit of answer.topk || []) {
     const item = document.createElement("li");

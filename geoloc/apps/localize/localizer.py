@@ -53,8 +53,9 @@ class Localizer:
                  calibration: dict | None = None):
         self.encoder, self.index, self.places, self.meta = encoder, index, places, info
         self.calibration = calibration  # the gallery's calibration.json (None: saved without one)
-        self.calibrator: Calibrator | None = calibrators(calibration).get(TOP1)
-        self.within: Calibrator | None = calibrators(calibration).get(WITHIN_5M)  # the refiner's, where fitted
+        fitted = calibrators(calibration)
+        self.calibrator: Calibrator | None = fitted.get(TOP1)
+        self.within: Calibrator | None = fitted.get(WITHIN_5M)  # the refiner's, where fitted
         self.limits = limits.limits() if limits is not None else QueryLimits()
         # candidate headings of the search: as asked, else as the checkpoint's dataset config says
         self.device = encoder.device

@@ -45,8 +45,7 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
                           "alone, which breaks its north alignment with the panorama; set "
                           "dataset.aerial_rotation_deg=0 (dataset.joint_flip_rotate turns both consistently)")
     if split == "train" and cfg.calibration_holdout:  # the held-out queries are never trained on
-        held = set(holdout_rows(out.num_queries, _holdout(cfg, out)).tolist())
-        out = rows_of(out, [i for i in range(out.num_queries) if i not in held])
+        out = rows_of(out, np.setdiff1d(np.arange(out.num_queries), holdout_rows(out.num_queries, _holdout(cfg, out))))
     limit = cfg.max_train if split == "train" else cfg.max_val
     if limit and limit < out.num_queries:
         out = limited(out, limit)

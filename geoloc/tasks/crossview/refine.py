@@ -185,8 +185,7 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
                  query_descriptors: torch.Tensor | None = None,
                  reference_descriptors: torch.Tensor | None = None) -> dict[str, float]:
     """fine_plan(split)'s metrics: each query refined in its positive tile (the fine-grained protocol), and in its
-    top-1 retrieved tile (end to end: the tile centre's position plus the refined offset, against the query's;
-    left out without the descriptors)."""
+    top-1 retrieved tile (end to end: the tile centre's position plus the refined offset, against the query's)."""
     out: dict[str, float] = {}
     plan = fine_plan(split, refine)
     positives = torch.from_numpy(split.positives)
@@ -195,7 +194,7 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
         out.update(fine_summary(positive_errors_m(position.numpy(), split)))
     if FINE_HEADING_KEYS in plan:
         out.update(heading_summary(circular_error_deg(heading.numpy(), true_heading.cpu().numpy())))
-    if E2E_KEYS in plan and query_descriptors is not None:
+    if E2E_KEYS in plan:
         top1 = top_k(query_descriptors, reference_descriptors, 1)[1][:, 0].cpu()
         e2e_position, _, _ = refined(refiner, query_maps, reference_maps, top1, candidates)
         out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), top1.numpy(), split)))

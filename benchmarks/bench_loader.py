@@ -63,14 +63,12 @@ def write_pairs(root: Path, n: int, aerial_hw, pano_hw, aerial_ext: str) -> Path
 
 def dataset_cfg(code: Path, overrides: list[str], root: Path, extra: dict):
     """The dataset keys (CrossViewDataConfig) that `python train.py <overrides>` composes, reading `root`."""
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends, as the entry points store them)
+    from geoloc.launch.hydra_hooks import compose_conf
     from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 
-    with initialize_config_dir(str(code / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=overrides)
+    cfg = compose_conf("train", overrides, conf=code / "conf")
     keys = {f.name for f in dataclasses.fields(CrossViewDataConfig)}
     section = {k: v for k, v in OmegaConf.to_container(cfg.dataset, resolve=False).items() if k in keys}
     section.update(name="cvusa", root=str(root), check_files="off")

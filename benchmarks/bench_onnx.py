@@ -29,17 +29,14 @@ def main() -> None:
     args = parser.parse_args()
 
     import onnxruntime
-    from hydra import compose, initialize_config_dir
-
-    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends, as train.py stores them)
+    from geoloc.launch.hydra_hooks import compose_conf
     from geoloc.apps.export.onnx_export import export_encoders
     from geoloc.tasks.crossview import CrossViewEncoder
     from geoloc.tasks.crossview.config import parse_training
     from geoloc.tasks.crossview.run import build_task
 
     torch.set_num_threads(args.threads)
-    with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=[*args.overrides, "run_dir=."])
+    cfg = compose_conf("train", [*args.overrides, "run_dir=."])
     torch.manual_seed(0)
     run = parse_training(cfg)
     task = build_task(run.model, run.components, run.trainer.max_epochs)

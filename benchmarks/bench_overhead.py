@@ -28,7 +28,6 @@ import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from torch.utils.data import Dataset, default_collate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,6 +35,7 @@ sys.path.insert(0, str(REPO))
 
 import geoloc.launch.hydra_hooks  # noqa: E402,F401  (the schema nodes conf/ extends, as the entry points store them)
 from geoloc.config import checked  # noqa: E402
+from geoloc.launch.hydra_hooks import compose_conf  # noqa: E402
 from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
 from geoloc.eval.retrieval_metrics import retrieval_metrics  # noqa: E402
 from geoloc.eval.scoring import QUERY_CHUNK  # noqa: E402
@@ -66,8 +66,7 @@ class HeldItems(Dataset):
 def train_config(args, run_dir: Path):
     overrides = ["trainer.progress=false", "trainer.num_workers=0", f"trainer.max_epochs={args.epochs}",
                  "sampler=shuffle", f"run_dir={run_dir}"]
-    with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
-        return compose("train", overrides=overrides)
+    return compose_conf("train", overrides)
 
 
 def geoloc_fit(cfg, items, run_dir: Path) -> float:

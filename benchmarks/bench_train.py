@@ -26,13 +26,13 @@ import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from torch.utils.data import default_collate
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from geoloc.config import checked  # noqa: E402
+from geoloc.launch.hydra_hooks import compose_conf  # noqa: E402
 from geoloc.tasks.crossview.config import parse_training  # noqa: E402
 from geoloc.tasks.crossview.data_config import parse_dataset  # noqa: E402
 from geoloc.tasks.crossview.datasets import build  # noqa: E402
@@ -57,8 +57,7 @@ def config(args, root: Path, run_dir: Path):
                  f"dataset.batch_size={args.batch}", f"trainer.device={args.device}", f"trainer.num_workers={args.workers}",
                  f"trainer.precision={args.precision}", f"trainer.channels_last={args.channels_last}",
                  f"trainer.compile={args.compile}", "trainer.progress=false", f"run_dir={run_dir}"]
-    with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
-        return compose("train", overrides=overrides)
+    return compose_conf("train", overrides)
 
 
 def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:

@@ -8,9 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-
-import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends, as the entry points store them)
+from geoloc.launch.hydra_hooks import compose_conf
 from geoloc.apps.localize.run import LocalizeConfig
 from geoloc.launch.schemas import store_dataclass
 
@@ -64,13 +62,11 @@ TINY = [  # the paper's groups (not the CPU recipe's options), shrunk
 
 
 def compose_train(overrides: list[str]):
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        return compose("train", overrides=overrides)
+    return compose_conf("train", overrides)
 
 
 def compose_evaluate(overrides: list[str]):
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        return compose("evaluate", overrides=overrides)
+    return compose_conf("evaluate", overrides)
 
 
 @pytest.fixture(scope="module")

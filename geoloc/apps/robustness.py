@@ -104,17 +104,10 @@ def write_whole(path: Path, text: str, overwrite: bool) -> None:
 
 def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):
     """evaluate.py's config for `overrides`, composed from conf/evaluate.yaml as `python evaluate.py` composes it."""
-    from hydra import compose, initialize_config_dir
+    from geoloc.launch.hydra_hooks import compose_conf
 
-    import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes conf/ extends)
-
-    conf = Path(__file__).resolve().parents[2] / "conf"
-    if not (conf / "evaluate.yaml").is_file():
-        raise ConfigError(f"robustness composes evaluate.py's config from conf/ of a geoloc checkout, and {conf} "
-                          "holds none: install geoloc from its repository with pip install -e .")
-    with initialize_config_dir(str(conf), version_base="1.3"):
-        return compose("evaluate", overrides=[f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",
-                                              f"progress={str(progress).lower()}", *overrides])
+    return compose_conf("evaluate", [f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",
+                                     f"progress={str(progress).lower()}", *overrides])
 
 
 def robustness(args: list[str]) -> dict:

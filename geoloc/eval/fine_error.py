@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from geoloc.eval.geo_error import checked_errors, shares_within
 from geoloc.eval.keys import KeySet
 
 FINE_THRESHOLDS_M = (1, 3, 5)
@@ -21,28 +22,21 @@ FINE_HEADING_KEYS = KeySet({"fine_heading_mean_deg": 180.0, "fine_heading_median
 E2E_KEYS = KeySet({"e2e_median_m": float("inf"), **{f"e2e_within_{t}m": 0.0 for t in E2E_THRESHOLDS_M}})
 
 
-def _errors(x, what: str) -> np.ndarray:
-    e = np.asarray(x, dtype=np.float64)
-    if e.ndim != 1 or e.size == 0 or not np.isfinite(e).all() or (e < 0).any():
-        raise ValueError(f"{what} must be a non-empty 1-D array of finite errors >= 0, got shape {e.shape}")
-    return e
-
-
 def fine_summary(errors_m) -> dict[str, float]:
     """FINE_KEYS of (Q,) metre errors with the positive tile given."""
-    e = _errors(errors_m, "fine errors")
+    e = checked_errors(errors_m, "fine errors")
     return FINE_KEYS.values({"fine_mean_m": e.mean(), "fine_median_m": np.median(e),
-                             **{f"fine_within_{t}m": (e <= t).mean() for t in FINE_THRESHOLDS_M}})
+                             **shares_within(e, FINE_THRESHOLDS_M, "fine_")})
 
 
 def heading_summary(errors_deg) -> dict[str, float]:
     """FINE_HEADING_KEYS of (Q,) circular heading errors in [0, 180] degrees."""
-    e = _errors(errors_deg, "heading errors")
+    e = checked_errors(errors_deg, "heading errors")
     return FINE_HEADING_KEYS.values({"fine_heading_mean_deg": e.mean(), "fine_heading_median_deg": np.median(e)})
 
 
 def e2e_summary(errors_m) -> dict[str, float]:
     """E2E_KEYS of (Q,) metre errors of the refined top-1 tile."""
-    e = _errors(errors_m, "end-to-end errors")
+    e = checked_errors(errors_m, "end-to-end errors")
     return E2E_KEYS.values({"e2e_median_m": np.median(e),
-                            **{f"e2e_within_{t}m": (e <= t).mean() for t in E2E_THRESHOLDS_M}})
+                            **shares_within(e, E2E_THRESHOLDS_M, "e2e_")})

@@ -63,12 +63,21 @@ def metre_summary(errors) -> dict[str, float]:
     The median is numpy's (the mean of the two middle values for an even Q); a share counts errors <= the
     threshold and lies in [0, 1].
     """
+    e = checked_errors(errors, "errors")
+    return METRE_KEYS.values({"median_m": np.median(e), **shares_within(e, THRESHOLDS_M)})
+
+
+def checked_errors(errors, what: str) -> np.ndarray:
+    """(Q,) errors as float64, refused unless non-empty, 1-D, finite and >= 0 (metres or degrees)."""
     e = np.asarray(errors, dtype=np.float64)
     if e.ndim != 1 or e.size == 0:
-        raise ValueError(f"errors must be a non-empty 1-D array of metres, got shape {e.shape}")
+        raise ValueError(f"{what} must be a non-empty 1-D array of errors, got shape {e.shape}")
     if not np.isfinite(e).all() or (e < 0).any():
         i = int(np.flatnonzero(~np.isfinite(e) | (e < 0))[0])
-        raise ValueError(f"errors must be finite and >= 0 metres; entry {i} is {e[i]}")
-    out = {"median_m": np.median(e)}
-    out.update({f"within_{t}m": (e <= t).mean() for t in THRESHOLDS_M})
-    return METRE_KEYS.values(out)
+        raise ValueError(f"{what} must be finite and >= 0; entry {i} is {e[i]}")
+    return e
+
+
+def shares_within(errors: np.ndarray, thresholds_m, prefix: str = "") -> dict[str, float]:
+    """{"<prefix>within_<t>m": share of errors <= t} for each threshold t: inclusive, in [0, 1]."""
+    return {f"{prefix}within_{t}m": (errors <= t).mean() for t in thresholds_m}

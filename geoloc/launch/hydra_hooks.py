@@ -7,6 +7,8 @@
   Hydra's `${now:}`, so a sweep job started by a launcher in another process resolves the sweep dir to the same
   folder (Hydra copies the resolver cache into each job's config; the job process imports this module when it
   unpickles the callback below, which registers the resolver there too).
+- `compose_conf`: a config composed in-process (apps, tools, benchmarks, tests) exactly as the entry point of the
+  same name composes it, these registrations included;
 - `hydra_overrides_for_rank`: ranks > 0 of a torchrun / srun launch of train.py write into a throwaway Hydra
   dir, so one launch makes one run dir.
 - `RefuseTakenRunDir`: Hydra writes `.hydra/` into the run dir before the app starts, so a run refused only by
@@ -19,15 +21,31 @@ from __future__ import annotations
 
 import os
 import tempfile
+from pathlib import Path
 
+from hydra import compose, initialize_config_dir
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from geoloc.launch import schemas
 
+CONF = Path(__file__).resolve().parents[2] / "conf"
+
 
 def register_resolvers() -> None:
     OmegaConf.register_new_resolver("pid", lambda: os.getpid(), replace=True, use_cache=True)
+
+
+def compose_conf(name: str, overrides: list[str], conf: str | Path = CONF) -> DictConfig:
+    """`conf/<name>.yaml` with `overrides`, as `python <name>.py <overrides>` composes it. `conf` is the conf/ of
+    this checkout unless another is given (a benchmark comparing checkouts)."""
+    if not (Path(conf) / f"{name}.yaml").is_file():
+        from geoloc.config import ConfigError
+
+        raise ConfigError(f"{conf} holds no {name}.yaml: geoloc composes its configs from conf/ of a geoloc "
+                          "checkout; install geoloc from its repository with pip install -e .")
+    with initialize_config_dir(str(Path(conf).resolve()), version_base="1.3"):
+        return compose(name, overrides=list(overrides))
 
 
 class RefuseTakenRunDir(Callback):

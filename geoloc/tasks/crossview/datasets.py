@@ -94,6 +94,12 @@ def held_out(split: RetrievalSplit, n: int) -> RetrievalSplit:
     return rows_of(split, holdout_rows(split.num_queries, n))
 
 
+def holdout_rule(held: RetrievalSplit, use: str) -> str:
+    """The record of how a calibrator's queries were chosen (held_out), and `use`: what was done with them."""
+    return (f"{held.num_queries} queries spread over {held.name} (dataset.calibration_holdout), kept out of "
+            f"training, {use}")
+
+
 def paths_to_check(split: RetrievalSplit) -> list[Path]:
     if split.one_to_one:  # pair by pair, as the one-to-one readers list them
         return [p for pair in zip(split.queries, split.references) for p in pair]

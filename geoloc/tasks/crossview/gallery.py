@@ -36,7 +36,7 @@ import torch
 from torch.utils.data import Dataset
 
 from geoloc.config import ConfigError
-from geoloc.tasks.crossview.datasets import EvalData
+from geoloc.tasks.crossview.datasets import EvalData, holdout_rule
 from geoloc.engine import distributed as dist
 from geoloc.engine.sampling import split_key
 from geoloc.eval.descriptors import check_descriptors, descriptor_spread, require_finite
@@ -298,9 +298,8 @@ def top1_confidence(task, engine, held_out: EvalData | None, batch_size: int, re
     check_descriptors(held["query"], held["reference"])
     gallery, rows = with_positives(reference, split.references, held["reference"], held_out.split.references,
                                    held_out.split.positives)
-    rule = (f"{held_out.split.num_queries} queries spread over {held_out.split.name} (dataset.calibration_holdout),"
-            f" kept out of training, against the {len(split.references)} references of {split.name} plus their "
-            "own positives")
+    rule = holdout_rule(held_out.split, f"against the {len(split.references)} references of {split.name} plus their "
+                                        "own positives")
     return fit_top1(held["query"], gallery, rows, fov, rule)
 
 

@@ -18,6 +18,7 @@ from geoloc.eval.calibration import Calibrator
 from geoloc.eval.fine_error import fine_summary
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, calibrators, confidence_report, fit_within,
                                                refine_features)
+from geoloc.tasks.crossview.datasets import holdout_rule
 from geoloc.tasks.crossview.encode import encode_refine_maps
 from geoloc.tasks.crossview.refine import RADIUS_M, fine_answers
 
@@ -45,8 +46,7 @@ def fitted_within(task, engine, held_out, batch_size: int) -> Calibrator | str |
     split = held_out.split
     condition = {"tile": "holds the camera", "orientation_noise_deg": float(task.refine.orientation_noise_deg),
                  "radius_m": RADIUS_M}
-    rule = (f"{split.num_queries} queries spread over {split.name} (dataset.calibration_holdout), kept out of "
-            "training, each refined in its positive tile")
+    rule = holdout_rule(split, "each refined in its positive tile")
     return fit_within(*answers, RADIUS_M, condition, rule)
 
 

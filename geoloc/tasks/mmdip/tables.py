@@ -31,7 +31,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from geoloc.config import to_yaml  # noqa: E402
@@ -42,7 +41,6 @@ from geoloc.tasks.mmdip.pipeline import parse, run_phase1, run_phase2  # noqa: E
 from geoloc.tasks.mmdip.readers import build_reader  # noqa: E402
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id  # noqa: E402
 
-CONF = Path(__file__).resolve().parents[3] / "conf"
 SEGMENTERS = {"erfnet": "ERFNet", "fcn": "FCN-8s (small)", "unet": "U-Net"}
 # MGAN reads the ground-truth dynamic-object mask at test time (networks.generator_input): an oracle input no
 # other row gets, so every table and figure that shows it says so.
@@ -202,8 +200,9 @@ def main(argv=None) -> None:
     p.add_argument("--tables", nargs="+", default=["I", "II", "III", "IV"], choices=["I", "II", "III", "IV"])
     p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. dataset.root=DIR task.segmentation.epochs=4")
     args = p.parse_args(argv)
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose("train", overrides=["task=mmdip", f"run_dir={args.out}", *args.overrides])
+    from geoloc.launch.hydra_hooks import compose_conf
+
+    cfg = compose_conf("train", ["task=mmdip", f"run_dir={args.out}", *args.overrides])
     OmegaConf.resolve(cfg)
     make_tables(cfg, args.out, tuple(args.tables))
 

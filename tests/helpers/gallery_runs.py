@@ -24,7 +24,8 @@ def pairs_split(n, root="/data", name="pairs"):
 def gallery_evaluate(monkeypatch, split, query, reference, meta=META, **cfg):
     """crossview_gallery.evaluate of `split` with encode_split() replaced by the given descriptors (`rows`: those
     references)."""
-    def encode_split(task, engine, data, batch_size, sides=("query", "reference"), rows=None):
+    def encode_split(task, engine, data, batch_size, sides=("query", "reference"), rows=None, refine=False):
+        assert not refine  # a task without a refiner asks for no refiner maps
         given = {"query": query, "reference": reference if rows is None else reference[list(rows)]}
         return {k: given[k] for k in sides}
 

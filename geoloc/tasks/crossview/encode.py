@@ -9,19 +9,39 @@ import torch
 from geoloc.engine import distributed as dist
 
 
-def encode(task, engine, loader, keys=("query", "reference")) -> dict:
+def encode(task, engine, loader, keys=("query", "reference"), refine: bool = False) -> dict:
     """{key: N x dim float32 CPU descriptors} of the whole dataset of `loader` (an unshuffled engine.loader) in
     dataset order.
 
     keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
+    refine: also {"refine_<key>": `task.refiner`'s maps of batch["refine_<key>"]}, the same items read at the
+    refiner's input (datasets.eval_sets(refine=)), from the same decode.
     """
-    return _encoded(task, engine, loader, lambda batch: {k: getattr(task.model, k)(batch[k]) for k in keys})
+    def describe(batch):
+        out = {k: getattr(task.model, k)(batch[k]) for k in keys}
+        if refine:
+            out.update({f"refine_{k}": refine_encoder(task, k)(batch[f"refine_{k}"]) for k in keys})
+        return out
+
+    return _encoded(task, engine, loader, describe)
 
 
-def encode_images(task, engine, loader, encoder) -> torch.Tensor:
-    """N x dim float32 CPU descriptors of a ViewImages loader's images (batch["image"]) through `encoder` (a branch
-    of `task.model`: `task.model.encoders(...)` picks it), in dataset order."""
-    return _encoded(task, engine, loader, lambda batch: {"image": encoder(batch["image"])})["image"]
+def encode_images(task, engine, loader, encoder, side: str, refine: bool = False) -> dict:
+    """{side: N x dim float32 CPU descriptors} of a ViewImages loader's images (batch["image"]) through `encoder` (a
+    branch of `task.model`: `task.model.encoders(...)` picks it), in dataset order; refine: also {"refine_<side>":
+    the refiner's maps of the same images at its input (batch["refine_image"])}, from the same decode."""
+    def describe(batch):
+        out = {side: encoder(batch["image"])}
+        if refine:
+            out[f"refine_{side}"] = refine_encoder(task, side)(batch["refine_image"])
+        return out
+
+    return _encoded(task, engine, loader, describe)
+
+
+def refine_encoder(task, side: str):
+    """The encoder of `task.refiner` for a query ("query") or a tile ("reference")."""
+    return {"query": task.refiner.encode_query, "reference": task.refiner.encode_reference}[side]
 
 
 @torch.no_grad()
@@ -49,19 +69,3 @@ def plain_pairs_loader(engine, pairs, batch_size: int):
     plain = copy.copy(pairs)
     plain.train = False
     return engine.loader(plain, batch_size, train=False)
-
-
-def encode_refine_maps(task, engine, data, batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(query maps, reference maps) of an EvalData read with the refiner's inputs (datasets.eval_sets(refine=)),
-    through `task.refiner`'s two encoders, in dataset order: one-to-one pairs give reference i for query i."""
-    refiner = task.refiner
-    if data.pairs is not None:
-        out = _encoded(task, engine, engine.loader(data.pairs, batch_size, train=False),
-                       lambda batch: {"query": refiner.encode_query(batch["refine_query"]),
-                                      "reference": refiner.encode_reference(batch["refine_reference"])})
-        return out["query"], out["reference"]
-    sides = ((data.queries, refiner.encode_query), (data.references, refiner.encode_reference))
-    query, reference = (_encoded(task, engine, engine.loader(images, batch_size, train=False),
-                                 lambda batch, encoder=encoder: {"map": encoder(batch["refine_image"])})["map"]
-                        for images, encoder in sides)
-    return query, reference

@@ -155,9 +155,10 @@ def shard_rows(num_references: int, num_shards: int, shard_index: int) -> range:
 
 
 def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", "reference"),
-                 rows=None) -> dict:
+                 rows=None, refine: bool = False) -> dict:
     """{side: descriptors} of the split's queries and / or references, each image through its view's branch;
-    `rows` (ascending): only those references (one-to-one splits: those pairs), in that order."""
+    `rows` (ascending): only those references (one-to-one splits: those pairs), in that order. refine (a task with
+    a refiner, `data` read with its inputs): also {"refine_<side>": the refiner's maps}, from the same decode."""
     def subset(dataset):
         return dataset if rows is None else Rows(dataset, list(rows))
 
@@ -167,11 +168,15 @@ def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", 
             raise ValueError("encoding some references of a split through its pairs needs pair i to hold "
                              "reference i (a one-to-one split)")
     if data.pairs is not None:
-        return encode(task, engine, engine.loader(subset(data.pairs), batch_size, train=False), keys=sides)
+        return encode(task, engine, engine.loader(subset(data.pairs), batch_size, train=False), keys=sides,
+                      refine=refine)
     encoders = dict(zip(("query", "reference"), task.model.encoders(data.split.aerial_queries)))
     images = {"query": data.queries, "reference": subset(data.references)}
-    return {side: encode_images(task, engine, engine.loader(images[side], batch_size, train=False), encoders[side])
-            for side in sides}
+    out = {}
+    for side in sides:
+        out.update(encode_images(task, engine, engine.loader(images[side], batch_size, train=False), encoders[side],
+                                 side, refine))
+    return out
 
 
 class Rows(Dataset):
@@ -202,15 +207,17 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
         saved = open_gallery(cfg.load, meta["model_fingerprint"], meta["ckpt"], device=engine.device, split=split,
                              dataset=meta["dataset"])
         index, spread = saved.index, saved.info["reference_spread"]
-        query = encode_split(task, engine, data, batch_size, sides=("query",))["query"]
+        refine = task.refiner is not None  # the refiner's maps of the tiles too: the references decoded once
+        desc = encode_split(task, engine, data, batch_size, sides=("query", "reference") if refine else ("query",),
+                            refine=refine)
+        query = desc["query"]
         check_descriptors(query)
         plan = split_plan(split, exact=index.kind == "flat")
         metrics = guarded(lambda: index_metrics(index, query, split), spread, plan)
         return {**metrics, **scored_confidence(saved.calibration, index, query, split, run_dir),
-                **scored_within(saved.calibration, task, engine, data, batch_size, run_dir),
-                "num_references": len(index)}
+                **scored_within(saved.calibration, task, data.split, desc, run_dir), "num_references": len(index)}
     index_knobs(cfg, split.num_references, task.model_cfg.dim)  # a kind that cannot train fails before encoding
-    desc = encode_split(task, engine, data, batch_size)
+    desc = encode_split(task, engine, data, batch_size, refine=task.refiner is not None)
     query, reference = desc["query"], desc["reference"]
     spread = check_descriptors(query, reference)  # raises before a broken gallery is saved
 
@@ -230,7 +237,7 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
     confidence = scored_confidence(record, built[0], query, split, run_dir) if built else {}
-    return {**metrics, **confidence, **scored_within(record, task, engine, data, batch_size, run_dir),
+    return {**metrics, **confidence, **scored_within(record, task, split, desc, run_dir),
             "num_references": len(reference)}
 
 
@@ -285,16 +292,18 @@ def fitted_confidence(task, engine, held_out: EvalData | None, batch_size: int, 
     """calibration.json's record: the top-1 confidence fitted on the held-out queries against this gallery's
     references (confidence.py), or why there is none; with a refiner, its "within_5m" too
     (refine_confidence.py)."""
-    record = top1_confidence(task, engine, held_out, batch_size, reference, split, fov)
-    within = fitted_within(task, engine, held_out, batch_size)
+    held = None if held_out is None else encode_split(task, engine, held_out, batch_size,
+                                                      refine=task.refiner is not None)
+    record = top1_confidence(held_out, held, reference, split, fov)
+    within = fitted_within(task, held_out, held)
     return record if within is None else with_refiner(record, within)
 
 
-def top1_confidence(task, engine, held_out: EvalData | None, batch_size: int, reference: torch.Tensor,
-                    split, fov: float) -> dict:
+def top1_confidence(held_out: EvalData | None, held: dict | None, reference: torch.Tensor, split,
+                    fov: float) -> dict:
+    """The top-1 record of the held-out queries' descriptors `held` (encode_split), or why there is none."""
     if held_out is None:
         return uncalibrated(NO_HOLDOUT)
-    held = encode_split(task, engine, held_out, batch_size)
     check_descriptors(held["query"], held["reference"])
     gallery, rows = with_positives(reference, split.references, held["reference"], held_out.split.references,
                                    held_out.split.positives)

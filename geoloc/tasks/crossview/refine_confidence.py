@@ -19,28 +19,28 @@ from geoloc.eval.fine_error import fine_summary
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, calibrators, confidence_report, fit_within,
                                                refine_features)
 from geoloc.tasks.crossview.datasets import holdout_rule
-from geoloc.tasks.crossview.encode import encode_refine_maps
 from geoloc.tasks.crossview.refine import RADIUS_M, fine_answers
 
 NO_SCALE = "the split's tiles have no metres per pixel, so the refiner's error has no metres to calibrate"
 
 
-def refine_answers(task, engine, data, batch_size: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """((Q,) masses within 5 m, (Q,) metre errors) of the split's queries refined in their positive tiles; None
+def refine_answers(task, split, maps: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """((Q,) masses within 5 m, (Q,) metre errors) of the split's queries refined in their positive tiles, from
+    the refiner's maps in `maps` ("refine_query", "refine_reference": gallery.encode_split(refine=True)); None
     without a refiner or without a metre scale."""
-    if task.refiner is None or data.split.reference_metres_per_px is None:
+    if task.refiner is None or split.reference_metres_per_px is None:
         return None
-    query, reference = encode_refine_maps(task, engine, data, batch_size)
-    return fine_answers(task.refiner, data.split, task.refine_candidates(), query, reference)
+    return fine_answers(task.refiner, split, task.refine_candidates(), maps["refine_query"], maps["refine_reference"])
 
 
-def fitted_within(task, engine, held_out, batch_size: int) -> Calibrator | str | None:
-    """The "within_5m" calibrator of the held-out queries, why there is none, or None without a refiner."""
+def fitted_within(task, held_out, held: dict | None) -> Calibrator | str | None:
+    """The "within_5m" calibrator of the held-out queries (`held`: their encode_split(refine=True)), why there is
+    none, or None without a refiner."""
     if task.refiner is None:
         return None
     if held_out is None:
         return NO_HOLDOUT
-    answers = refine_answers(task, engine, held_out, batch_size)
+    answers = refine_answers(task, held_out.split, held)
     if answers is None:
         return NO_SCALE
     split = held_out.split
@@ -50,10 +50,11 @@ def fitted_within(task, engine, held_out, batch_size: int) -> Calibrator | str |
     return fit_within(*answers, RADIUS_M, condition, rule)
 
 
-def scored_within(record: dict | None, task, engine, data, batch_size: int, run_dir: Path | None) -> dict:
-    """The fine_* metres of the split's queries refined in their positive tiles and, under a gallery calibrated for
-    the refiner, `ece_within_5m` and run_dir/confidence_within_5m.png; {} without a refiner."""
-    answers = refine_answers(task, engine, data, batch_size)
+def scored_within(record: dict | None, task, split, maps: dict, run_dir: Path | None) -> dict:
+    """The fine_* metres of the split's queries refined in their positive tiles (the refiner's `maps`, as in
+    refine_answers) and, under a gallery calibrated for the refiner, `ece_within_5m` and
+    run_dir/confidence_within_5m.png; {} without a refiner."""
+    answers = refine_answers(task, split, maps)
     if answers is None:
         return {}
     mass, error = answers

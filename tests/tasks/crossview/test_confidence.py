@@ -87,7 +87,7 @@ def run_gallery(monkeypatch, tmp_path, descriptors, held: bool, **cfg):
     data = {"test": EvalData(test), "held": EvalData(held_split)}
     name = {id(v): k for k, v in data.items()}
     monkeypatch.setattr(crossview_gallery, "encode_split",
-                        lambda task, engine, d, batch_size, sides=("query", "reference"), rows=None:
+                        lambda task, engine, d, batch_size, sides=("query", "reference"), rows=None, refine=False:
                         dict(zip(("query", "reference"), descriptors[name[id(d)]])))
     engine = SimpleNamespace(device=torch.device("cpu"))
     # what evaluate reads of the task: its descriptor size, and no refiner

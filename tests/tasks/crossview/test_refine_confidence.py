@@ -135,11 +135,14 @@ def run_gallery(monkeypatch, tmp_path, held: bool, **cfg):
     descriptors = {k: (torch.nn.functional.normalize(r + 0.9 * unit(rng, len(r)), dim=1), r)  # noisy positives
                    for k, r in references.items()}
     maps = {"test": guesses(splits["test"], 4), "held": guesses(splits["held"], 6)}
-    monkeypatch.setattr(crossview_gallery, "encode_split",
-                        lambda task, engine, d, batch_size, sides=("query", "reference"), rows=None:
-                        dict(zip(("query", "reference"), descriptors[name[id(d)]])))
-    monkeypatch.setattr(refine_confidence, "encode_refine_maps",
-                        lambda task, engine, d, batch_size: (maps[name[id(d)]], torch.zeros(len(maps[name[id(d)]]), 1)))
+
+    def encode_split(task, engine, d, batch_size, sides=("query", "reference"), rows=None, refine=False):
+        out = dict(zip(("query", "reference"), descriptors[name[id(d)]]))
+        if refine:  # the refiner's maps come from the same pass as the descriptors
+            out.update(refine_query=maps[name[id(d)]], refine_reference=torch.zeros(len(maps[name[id(d)]]), 1))
+        return {k: v for k, v in out.items() if k.removeprefix("refine_") in sides}
+
+    monkeypatch.setattr(crossview_gallery, "encode_split", encode_split)
     engine = SimpleNamespace(device=torch.device("cpu"))
     metrics = crossview_gallery.evaluate(refining_task(), engine, data["test"], 4, GalleryConfig(**cfg), META,
                                          data["held"] if held else None, 360.0, tmp_path / "run")

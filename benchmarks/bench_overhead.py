@@ -33,7 +33,6 @@ from torch.utils.data import Dataset, default_collate
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import geoloc.launch.hydra_hooks  # noqa: E402,F401  (the schema nodes conf/ extends, as the entry points store them)
 from geoloc.config import checked  # noqa: E402
 from geoloc.launch.hydra_hooks import compose_conf  # noqa: E402
 from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402

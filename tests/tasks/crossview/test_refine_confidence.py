@@ -15,7 +15,6 @@ from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.calibration import expected_calibration_error, fit_calibrator
 from geoloc.models.refiners import Refinement
 from geoloc.tasks.crossview import gallery as crossview_gallery
-from geoloc.tasks.crossview import refine_confidence
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1, WITHIN_5M, calibrators,
                                                fit_within, refine_features, with_refiner)
 from geoloc.tasks.crossview.datasets import EvalData

@@ -1,6 +1,7 @@
-"""The MMDIP paper's tables and figures on one dataset, with one command:
+"""The MMDIP paper's tables and figures on one dataset: make_tables(cfg, out), run by one command
+(geoloc/apps/mmdip_tables.py):
 
-    python -m geoloc.tasks.mmdip.tables --out DIR [--tables I II III IV] [hydra overrides ...]
+    python -m geoloc.apps.mmdip_tables --out DIR [--tables I II III IV] [hydra overrides ...]
 
   Table I    phase 1 for ERFNet, FCN and U-Net: per-class IoU, PA, MPA, MIoU, FWIoU, parameter counts
   Table II   phase 2 for pix2pix, MGAN, SSGGNet, SSGGNet-SM: L1, L2, PSNR, SSIM on the validation split.
@@ -20,7 +21,6 @@ is not implemented (docs/mmdip.md says why).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import shutil
@@ -31,7 +31,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
 from geoloc.config import to_yaml  # noqa: E402
 from geoloc.tasks.mmdip.datasets import STATIC_CLASSES  # noqa: E402
@@ -192,20 +191,3 @@ def make_tables(cfg, out: Path, tables=("I", "II", "III", "IV")) -> dict:
     qualitative(examples, out, n=min(4, len(examples["ssggnet"]["dynamic"])))
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
     return summary
-
-
-def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--tables", nargs="+", default=["I", "II", "III", "IV"], choices=["I", "II", "III", "IV"])
-    p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. dataset.root=DIR task.segmentation.epochs=4")
-    args = p.parse_args(argv)
-    from geoloc.launch.hydra_hooks import compose_conf
-
-    cfg = compose_conf("train", ["task=mmdip", f"run_dir={args.out}", *args.overrides])
-    OmegaConf.resolve(cfg)
-    make_tables(cfg, args.out, tuple(args.tables))
-
-
-if __name__ == "__main__":
-    main()

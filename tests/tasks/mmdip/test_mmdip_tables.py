@@ -4,7 +4,7 @@ import json
 
 import pytest
 import torch
-from geoloc.tasks.mmdip import tables
+from geoloc.apps import mmdip_tables
 
 from helpers.dynamic_data import TINY_MMDIP, write_tiny_dynamic
 
@@ -17,7 +17,7 @@ def test_tables_one_to_four_and_figures(tmp_path):
         root = write_tiny_dynamic(tmp_path / "dyn", n_train=3, n_val=3)
         out = tmp_path / "tables"
         overrides = [o for o in TINY_MMDIP if o != "task=mmdip"]
-        tables.main(["--out", str(out), f"dataset.root={root}", "+task.segmentation.unet.num_downs=3",
+        mmdip_tables.main(["--out", str(out), f"dataset.root={root}", "+task.segmentation.unet.num_downs=3",
                      "+task.segmentation.unet.ngf=8", "+task.segmentation.fcn.width=8", *overrides])
     finally:
         torch.set_num_threads(threads)

@@ -16,7 +16,10 @@ Cases (the dataset section each experiment composes):
 - default: `python train.py`'s dataset keys (IPT 64x64, flip/rotate, jitter 0.1, reduced_decode=false) on the
   synthetic world's 256x256 aerial / 616x112 panorama JPEGs; default-reduced: the same with reduced_decode=true;
 - vigor: dataset=vigor's keys at the paper's 288 (IPT 288x288, flip/rotate, jitter 0.1) on VIGOR's 640x640 PNG
-  aerials and 2048x1024 JPEG panoramas.
+  aerials and 2048x1024 JPEG panoramas;
+- vigor-cpu: experiment=vigor_cpu's keys (IPT 64x64, flip/rotate) on the synthetic vigor layout's 256x256 PNG tiles
+  and 512x256 JPEG panoramas; vigor-cpu-cached: the same with dataset.cache_decoded=true, each file decoded once
+  (the rounds after the first reuse the kept arrays, as every epoch after the first does in training).
 Synthetic files are smooth noise (so they compress like photos), written to a temporary folder.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_loader.py                    # this checkout
@@ -72,7 +75,7 @@ def dataset_cfg(code: Path, overrides: list[str], root: Path, extra: dict):
     keys = {f.name for f in dataclasses.fields(CrossViewDataConfig)}
     section = {k: v for k, v in OmegaConf.to_container(cfg.dataset, resolve=False).items() if k in keys}
     section.update(name="cvusa", root=str(root), check_files="off")
-    section.update({k: v for k, v in extra.items() if k in keys})  # reduced_decode only where the code has it
+    section.update({k: v for k, v in extra.items() if k in keys})  # reduced_decode, cache_decoded where the code has them
     return CrossViewDataConfig(**section)
 
 
@@ -162,7 +165,8 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--code", default=str(REPO), help="the checkout whose geoloc is measured (default: this one)")
     p.add_argument("--pairs", type=int, default=40, help="pairs per timed round")
     p.add_argument("--rounds", type=int, default=5)
-    p.add_argument("--cases", nargs="+", default=["paper", "paper-area", "default", "default-reduced", "vigor"])
+    p.add_argument("--cases", nargs="+", default=["paper", "paper-area", "default", "default-reduced", "vigor",
+                                                  "vigor-cpu", "vigor-cpu-cached"])
     args = p.parse_args(argv)
     code = Path(args.code).resolve()
     sys.path.insert(0, str(code))
@@ -184,6 +188,10 @@ def main(argv=None) -> list[dict]:
         "default-reduced": (default, lambda: tmp / "default", {"reduced_decode": True}),
         "vigor": (["dataset=vigor", "dataset.aerial_size=288"],
                   lambda: write_pairs(tmp / "vigor", 4, (640, 640), (1024, 2048), ".png"), {}),
+        "vigor-cpu": (["experiment=vigor_cpu"],
+                      lambda: write_pairs(tmp / "vigor_cpu", 8, (256, 256), (256, 512), ".png"),
+                      {"cache_decoded": False}),
+        "vigor-cpu-cached": (["experiment=vigor_cpu"], lambda: tmp / "vigor_cpu", {"cache_decoded": True}),
     }
     print(f"geoloc from {Path(geoloc.__file__).parent}; one core (torch threads {torch.get_num_threads()}, cv2 "
           f"threads {cv2.getNumThreads()}); paper-size files: {paper_root}; median of {args.rounds} rounds of "

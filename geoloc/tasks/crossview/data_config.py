@@ -51,6 +51,9 @@ class CrossViewDataConfig:
     # reduced decode leaves; 6x cheaper at CVUSA's 375 -> 288, and as close to the full decode's area resize),
     # INTER_AREA beyond (transforms.resize)
     resize_interpolation: str = "area"
+    # train: keep every decoded image in memory after its first read (geoloc/data/decoded.py): the same items, without
+    # decoding each file again every epoch; each loader process holds its own copy (H x W x 3 bytes an image)
+    cache_decoded: bool = False
     max_train: int = 0  # 0 = all; for quick runs (one-to-one splits keep their pairs; others cut the queries)
     max_val: int = 0
     calibration_holdout: int = 0  # N train queries spread over the split: kept out of training, they fit the confidence

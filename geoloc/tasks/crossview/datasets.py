@@ -12,6 +12,7 @@ from torch.utils.data import Dataset
 
 from geoloc import registry
 from geoloc.config import ConfigError
+from geoloc.data.decoded import DecodedImages
 from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import PER_QUERY, PER_REFERENCE, RetrievalSplit
 from geoloc.data.validate import check_files
@@ -135,6 +136,7 @@ class CrossViewPairs(Dataset):
         self.refine = refine  # a RefineConfig: items carry the refiner's inputs and truth (refine.py)
         self.labels = split.labels()
         self._neighbours = None
+        self.decoded = DecodedImages(cfg.cache_decoded and train)  # dataset.cache_decoded (geoloc/data/decoded.py)
 
     def __len__(self) -> int:
         return self.split.num_queries
@@ -155,8 +157,8 @@ class CrossViewPairs(Dataset):
         index, _ = split_key(key)
         label = int(self.labels[index])
         view = self.split.query_view
-        street = load_view(self.split.queries[index], view, decode_size(self.cfg, view))
-        aerial = read_rgb(self.split.references[label], decode_size(self.cfg, "aerial"))
+        street = self._decoded(self.split.queries[index], view)
+        aerial = self._decoded(self.split.references[label], "aerial")
         if self.heading_search:
             heading = eval_heading(index)
             candidates, _ = query_candidates(crop_view(street, self.cfg.fov, heading), self.cfg, view, self.cfg.fov,
@@ -170,6 +172,13 @@ class CrossViewPairs(Dataset):
             return self._refine_item(index, label, street, rng)
         query, reference = align(street, aerial, self.cfg, rng, view)
         return self._images({"query": query, "reference": reference}, rng, index=index, label=label)
+
+    def _decoded(self, path: Path, view: str) -> np.ndarray:
+        """The image at `path` decoded as a `view` (kept after the first read with dataset.cache_decoded)."""
+        size = decode_size(self.cfg, view)
+        if view == "aerial":
+            return self.decoded.get((path, size), lambda: read_rgb(path, size))
+        return self.decoded.get((path, size), lambda: load_view(path, view, size))
 
     def _images(self, images: dict, rng, **item) -> dict:
         """`item` with `images` (H×W×3 uint8, or lists of them, stacked) as uint8 tensors, and, in training with

@@ -30,7 +30,6 @@ from geoloc.engine import checkpoint as ckpt_io
 RESUME_MAY_CHANGE = (
     "trainer.max_epochs",  # more epochs: the epochs already run are not run again
     "trainer.num_workers", "trainer.pin_memory", "trainer.persistent_workers",  # loading only: samples are keyed
-    "dataset.cache_decoded",  # loading only: the same decoded arrays
     "trainer.device",  # moving a run to another machine
     "trainer.progress", "trainer.log_every_n_steps", "figures",  # what is shown and logged
     "run_dir", "ckpt", "init_from", "rewind", "hydra",  # where the run writes and what it starts from

@@ -26,8 +26,8 @@ from geoloc.tasks.crossview.refine import RefineConfig, parse_refiner, refine_no
 #: the registered kinds a cross-view network and its training are built from (registry.section: their sections)
 COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler", "query_views")
 #: what a resume may change besides the engine's keys (geoloc/launch/resume.py): the processes that render the
-#: synthetic set, which write the same files either way
-RESUME_MAY_CHANGE = ("dataset.workers",)
+#: synthetic set, which write the same files either way, and whether decoded images are kept (the same items)
+RESUME_MAY_CHANGE = ("dataset.workers", "dataset.cache_decoded")
 # transform settings that must match what the network was trained on: evaluation always takes them from the
 # checkpoint. The field of view and heading are the test condition, which evaluate.py may set.
 TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")

@@ -56,6 +56,22 @@ def test_a_turned_query_is_found_at_its_heading_and_position(heading):
     assert divmod(position, 33) == (14, 18)
 
 
+def test_one_query_expanded_over_its_tiles_scores_as_the_copied_query():
+    """An app refines one query in its top-k tiles by expanding its map (stride 0): the rotations and transforms
+    are then computed once, and the scores must be those of B separate copies."""
+    tiles = torch.cat([smooth_maps(8, 32, seed=s) for s in range(4)])
+    turned = rotate_maps(query_at(tiles[2:3], 14, 18), torch.tensor([-70.0]))[:, 0]
+    bins = torch.arange(36) * 10.0
+    expanded = turned.expand(4, -1, -1, -1)
+    assert expanded.stride(0) == 0
+    shared = correlate(expanded, tiles, bins, kernel=16)
+    copied = correlate(expanded.contiguous(), tiles, bins, kernel=16)
+    assert shared.shape == copied.shape == (4, 36, 33, 33)
+    assert torch.allclose(shared, copied, atol=1e-5)
+    k, position = divmod(int(shared[2].flatten().argmax()), 33 * 33)  # found in its own tile, as before
+    assert (bins[k].item(), divmod(position, 33)) == (70.0, (14, 18))
+
+
 def test_rotate_maps_turns_clockwise():
     """A mark above the centre (north) turned by 90 degrees lands right of it (east)."""
     maps = torch.zeros(1, 1, 9, 9)

@@ -60,21 +60,25 @@ def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_d
               kernel: int) -> torch.Tensor:
     """query_maps, reference_maps: B x C x n x n (n even); -> B x K x (n+1) x (n+1) mean dot products of the
     query's central kernel x kernel window (kernel even), rotated by each heading, with the reference map, the
-    query's centre laid on each cell corner (i, j) of the reference map."""
+    query's centre laid on each cell corner (i, j) of the reference map. One query against B tiles, given as its
+    map expanded to B (stride 0 along the batch, as an app's top-k refinement passes it), is rotated and transformed
+    once instead of B times."""
     b, c, n, _ = query_maps.shape
     if reference_maps.shape != query_maps.shape or n % 2 or kernel % 2 or not 2 <= kernel <= n:
         raise ValueError(f"correlate takes two B x C x n x n maps (n even) and an even kernel <= n; got "
                          f"{tuple(query_maps.shape)}, {tuple(reference_maps.shape)}, kernel {kernel}")
-    k = headings_deg.numel()
-    rotated = rotate_maps(query_maps, headings_deg)
+    shared = b > 1 and query_maps.stride(0) == 0  # the same query map for every tile
+    rotated = rotate_maps(query_maps[:1] if shared else query_maps, headings_deg)
     start = (n - kernel) // 2
-    window = rotated[..., start:start + kernel, start:start + kernel]  # B x K x C x kernel x kernel
+    window = rotated[..., start:start + kernel, start:start + kernel]  # B (or 1) x K x C x kernel x kernel
     # a correlation is a convolution with the flipped window: by FFT, several times faster than a grouped conv2d
     # of large kernels on a CPU; padded to n + kernel so nothing wraps around
     size = (n + kernel, n + kernel)
     reference = torch.fft.rfft2(reference_maps.float(), s=size)  # B x C x N x N/2+1
-    window = torch.fft.rfft2(window.float().flip(-1, -2), s=size)  # B x K x C x N x N/2+1
-    full = torch.fft.irfft2(torch.einsum("bchw,bkchw->bkhw", reference, window), s=size)
+    window = torch.fft.rfft2(window.float().flip(-1, -2), s=size)  # B (or 1) x K x C x N x N/2+1
+    product = (torch.einsum("bchw,kchw->bkhw", reference, window[0]) if shared
+               else torch.einsum("bchw,bkchw->bkhw", reference, window))
+    full = torch.fft.irfft2(product, s=size)
     # output corner o: the window's centre on the reference map's cell corner o (full index o + kernel/2 - 1)
     first = kernel // 2 - 1
     return full[..., first:first + n + 1, first:first + n + 1] / (kernel * kernel)

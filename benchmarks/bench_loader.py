@@ -75,7 +75,8 @@ def dataset_cfg(code: Path, overrides: list[str], root: Path, extra: dict):
     keys = {f.name for f in dataclasses.fields(CrossViewDataConfig)}
     section = {k: v for k, v in OmegaConf.to_container(cfg.dataset, resolve=False).items() if k in keys}
     section.update(name="cvusa", root=str(root), check_files="off")
-    section.update({k: v for k, v in extra.items() if k in keys})  # reduced_decode, cache_decoded where the code has them
+    # reduced_decode and cache_decoded only where the measured code has them
+    section.update({k: v for k, v in extra.items() if k in keys})
     return CrossViewDataConfig(**section)
 
 

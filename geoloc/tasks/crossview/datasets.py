@@ -176,8 +176,6 @@ class CrossViewPairs(Dataset):
     def _decoded(self, path: Path, view: str) -> np.ndarray:
         """The image at `path` decoded as a `view` (kept after the first read with dataset.cache_decoded)."""
         size = decode_size(self.cfg, view)
-        if view == "aerial":
-            return self.decoded.get((path, size), lambda: read_rgb(path, size))
         return self.decoded.get((path, size), lambda: load_view(path, view, size))
 
     def _images(self, images: dict, rng, **item) -> dict:

@@ -19,7 +19,7 @@ def test_tables_one_to_four_and_figures(tmp_path):
         out = tmp_path / "tables"
         overrides = [o for o in TINY_MMDIP if o != "task=mmdip"]
         mmdip_tables.main(["--out", str(out), f"dataset.root={root}", "+task.segmentation.unet.num_downs=3",
-                     "+task.segmentation.unet.ngf=8", "+task.segmentation.fcn.width=8", *overrides])
+                           "+task.segmentation.unet.ngf=8", "+task.segmentation.fcn.width=8", *overrides])
     finally:
         torch.set_num_threads(threads)
     for n in (1, 2, 3, 4):

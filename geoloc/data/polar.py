@@ -3,11 +3,14 @@
 - ``aerial_to_polar``: SAFA's polar transform (Shi et al., NeurIPS 2019), aerial S x S -> street-like H x W.
 - ``street_to_aerial``: the inverse polar transform (IPT) of Li et al., "Multi-scale attention encoder for
   street-to-aerial image geo-localization" (CAAI TIT 2023), eq. 1-2: panorama -> aerial-like image.
+- ``street_to_ground``: the ground-plane projection of a full sphere's horizon band: an aerial-like image in
+  metres, as a flat-ground camera of known height sees it (``dataset.alignment=ground``).
 
 Both share one angle convention, the one of CVUSA panoramas: column 0 looks south, the centre column north, and
 the columns turn clockwise seen from above (south, west, north, east). North is up in aerial images.
 
-The sampling grids depend only on (input shape, output shape), so they are built once and cached; a transform
+The sampling grids depend only on (input shape, output shape) (and the ground projection's metres), so they are
+built once and cached; a transform
 is then one ``cv2.remap`` call. The grid builders are public so that a torch pipeline can reuse them
 (``normalized_grid`` converts a grid for ``torch.nn.functional.grid_sample``).
 """
@@ -22,8 +25,10 @@ import numpy as np
 __all__ = [
     "aerial_to_polar",
     "street_to_aerial",
+    "street_to_ground",
     "aerial_to_polar_grid",
     "street_to_aerial_grid",
+    "street_to_ground_grid",
     "normalized_grid",
 ]
 
@@ -150,4 +155,47 @@ def street_to_aerial(img: np.ndarray, out_hw: tuple[int, int] = (288, 288), wrap
                          f"got shape {img.shape}")
     in_hw = (img.shape[0], img.shape[1] - 1) if wrapped else tuple(img.shape[:2])
     map_x, map_y = street_to_aerial_grid(in_hw, _check_hw(out_hw, "out_hw"))
+    return _remap(img if wrapped else np.concatenate([img, img[:, :1]], axis=1), map_x, map_y)
+
+
+# The ground-plane projection. The IPT maps panorama rows to radius linearly, so on a 73 m VIGOR tile the ground from
+# about 12 m to the tile's edge, most of the tile, falls on a thin ring at the horizon circle. This projection puts each
+# ground point where it lies: aerial-like pixel (y, x) covers the point e metres east and n north of the camera (pixel
+# centres, extent_m metres across the image, north up), which a camera h metres high sees at bearing atan2(e, n) and
+# elevation -atan(h / d), d = hypot(e, n). What stands on the ground (walls, trees) is smeared outward from its foot;
+# the sky and everything above the camera are not used. The street image is the horizon band of a full-sphere
+# panorama (rows H/4 to 3H/4, elevations +45° to -45°, as transforms.horizon_band cuts it), with the IPT's columns.
+# Ground nearer than h (below -45°) is outside the band and 0.
+BAND_DEG = 45.0  # the horizon band spans elevations +BAND_DEG (top row) to -BAND_DEG (bottom row)
+
+
+@functools.lru_cache(maxsize=32)
+def street_to_ground_grid(in_hw: tuple[int, int], out_hw: tuple[int, int], extent_m: float,
+                          camera_height_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """For aerial-like output pixel (y, x), the band's (col, row) it samples -> (map_x, map_y), float32, read-only.
+
+    Row r of an H-row band has its centre at elevation BAND_DEG - (r + 0.5)·2·BAND_DEG/H; columns as
+    street_to_aerial's (values past W - 1 interpolate towards column 0: street_to_ground appends it)."""
+    h_s, w_s = _check_hw(in_hw, "street shape")
+    h_a, w_a = _check_hw(out_hw, "out_hw")
+    if not (math.isfinite(extent_m) and extent_m > 0 and math.isfinite(camera_height_m) and camera_height_m > 0):
+        raise ValueError(f"the ground projection needs extent_m > 0 and camera_height_m > 0, got {extent_m!r} and "
+                         f"{camera_height_m!r}")
+    east = (np.arange(w_a, dtype=np.float64)[None, :] + 0.5 - w_a / 2) * (extent_m / w_a)
+    north = -(np.arange(h_a, dtype=np.float64)[:, None] + 0.5 - h_a / 2) * (extent_m / h_a)
+    bearing = np.degrees(np.arctan2(east, north))  # clockwise from north
+    elevation = -np.degrees(np.arctan2(camera_height_m, np.hypot(east, north)))
+    map_x = np.mod(bearing - 180.0, 360.0) / 360.0 * w_s
+    map_y = (BAND_DEG - elevation) / (2 * BAND_DEG) * h_s - 0.5
+    return _freeze(map_x.astype(np.float32), map_y.astype(np.float32))
+
+
+def street_to_ground(img: np.ndarray, out_hw: tuple[int, int], extent_m: float, camera_height_m: float,
+                     wrapped: bool = False) -> np.ndarray:
+    """The ground-plane projection of a horizon band (H x W (x C), uint8 or float32) to `out_hw`, covering
+    `extent_m` metres, seen from `camera_height_m` metres. Bilinear; the columns wrap. wrapped: `img` already ends
+    with a copy of its first column (as in street_to_aerial)."""
+    img = _check_image(img, "street image")
+    in_hw = (img.shape[0], img.shape[1] - 1) if wrapped else tuple(img.shape[:2])
+    map_x, map_y = street_to_ground_grid(in_hw, _check_hw(out_hw, "out_hw"), float(extent_m), float(camera_height_m))
     return _remap(img if wrapped else np.concatenate([img, img[:, :1]], axis=1), map_x, map_y)

@@ -105,7 +105,9 @@ def export_encoders(encoder: CrossViewEncoder, out: Path, query_view: str | None
     return {"format": "geoloc cross-view encoders, ONNX", "opset": used_opset,
             "exporter": f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
             "dataset": {"name": data.name, "alignment": data.alignment, "aerial_size": data.aerial_size,
-                        "pano_size": list(data.pano_size)},
+                        "pano_size": list(data.pano_size),
+                        **({"ground_extent_m": data.ground_extent_m, "camera_height_m": data.camera_height_m}
+                           if data.alignment == "ground" else {})},
             "shared_weights": bool(getattr(encoder.model, "shared", False)),
             **queries_entry(encoder, view),
             "usage": ("each image goes through its own view's file: ground images (street panoramas, drone photos) "

@@ -30,7 +30,7 @@ COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler", "query_views")
 RESUME_MAY_CHANGE = ("dataset.workers", "dataset.cache_decoded")
 # transform settings that must match what the network was trained on: evaluation always takes them from the
 # checkpoint. The field of view and heading are the test condition, which evaluate.py may set.
-TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size")
+TRANSFORM_KEYS = ("alignment", "aerial_size", "pano_size", "ground_extent_m", "camera_height_m")
 # what an evaluation may take from the command line besides the reader's own keys: which data (the dataset and its
 # root, split and checks) and the test condition (field of view, heading). Batch sizes and augmentation stay as
 # trained: they do not change what is measured.

@@ -12,7 +12,7 @@ from geoloc import registry
 from geoloc.config import checked
 from geoloc.tasks.crossview.views import check_fov
 
-ALIGNMENTS = ("ipt", "polar", "none")
+ALIGNMENTS = ("ipt", "ground", "polar", "none")
 INTERPOLATIONS = ("area", "linear")
 
 
@@ -30,6 +30,10 @@ class CrossViewDataConfig:
     alignment: str = "ipt"
     aerial_size: int = 288  # the paper's 288x288 for both branches under IPT
     pano_size: list[int] = field(default_factory=lambda: [112, 616])  # H, W for polar / none
+    # alignment=ground (geoloc.data.polar.street_to_ground, full-sphere queries): the metres the aerial-like query spans
+    # (the tile's extent: VIGOR's 640 px at 0.114 m, 72.96 m) and the street camera's height above the ground
+    ground_extent_m: float = 72.96
+    camera_height_m: float = 2.5
     batch_size: int = 64
     val_batch_size: int = 0  # 0 = batch_size
     rotation_deg: float = 0.0  # train: rotate the aerial-like query by U(-r, r) degrees (panorama column roll)
@@ -64,6 +68,9 @@ class CrossViewDataConfig:
         if self.resize_interpolation not in INTERPOLATIONS:
             raise ValueError(f"dataset.resize_interpolation must be one of {INTERPOLATIONS}, got "
                              f"{self.resize_interpolation!r}")
+        if self.alignment == "ground" and not (self.ground_extent_m > 0 and self.camera_height_m > 0):
+            raise ValueError(f"dataset.alignment=ground needs dataset.ground_extent_m > 0 and dataset.camera_height_m > "
+                             f"0, got {self.ground_extent_m} and {self.camera_height_m}")
         if self.batch_size < 1:
             raise ValueError(f"dataset.batch_size must be >= 1, got {self.batch_size}")
         if self.aerial_size < 16 or len(self.pano_size) != 2 or min(self.pano_size) < 8:

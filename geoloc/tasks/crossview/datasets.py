@@ -41,6 +41,10 @@ def read_split(cfg: CrossViewDataConfig, reader: dict, split: str) -> RetrievalS
                           "flip/rotate and rotation of panoramas and the panorama field of view / heading do not "
                           "apply; set dataset.alignment=none dataset.joint_flip_rotate=false dataset.rotation_deg=0 "
                           "dataset.fov=360 dataset.random_heading=false")
+    if cfg.alignment == "ground" and out.query_view != "sphere":
+        raise ConfigError(f"dataset {cfg.name!r} has {out.query_view!r} queries: dataset.alignment=ground projects "
+                          "the horizon band of a full-sphere panorama (VIGOR's; elevations +45° to -45°), whose "
+                          "vertical angles it knows; use dataset.alignment=ipt")
     if out.query_view in ("panorama", "sphere") and cfg.aerial_rotation_deg > 0:
         raise ConfigError(f"dataset {cfg.name!r} has panorama queries: dataset.aerial_rotation_deg turns the tile "
                           "alone, which breaks its north alignment with the panorama; set "

@@ -3,7 +3,8 @@ training images (transforms.py), so that a deployment needs no geoloc config (ex
 files: CrossViewEncoder.input_spec).
 
 The two branches take fixed H×W:
-  query branch (ground view): panorama / full sphere under alignment=ipt -> IPT to aerial_size²; under polar or
+  query branch (ground view): panorama / full sphere under alignment=ipt -> IPT to aerial_size² (a full sphere under
+      ground -> its ground-plane projection to aerial_size²); under polar or
       none -> resized to pano_size; a perspective photo (University-1652's drone views) -> resized to aerial_size².
   reference branch (aerial view): alignment=polar -> SAFA polar transform to pano_size; else resized to aerial_size².
 """
@@ -35,6 +36,10 @@ def query_input(cfg: CrossViewDataConfig, view: str) -> tuple[tuple[int, int], l
     if cfg.alignment == "ipt":
         ipt = f"inverse polar transform to {s}x{s}: geoloc.data.polar.street_to_aerial(img, ({s}, {s}))"
         return (s, s), [*steps, ipt]
+    if cfg.alignment == "ground":
+        ground = (f"ground-plane projection to {s}x{s}: geoloc.data.polar.street_to_ground(img, ({s}, {s}), "
+                  f"extent_m={cfg.ground_extent_m}, camera_height_m={cfg.camera_height_m})")
+        return (s, s), [*steps, ground]
     h, w = cfg.pano_size
     return (h, w), steps + [f"resize to {h}x{w} (H x W, cv2.INTER_AREA)"]
 

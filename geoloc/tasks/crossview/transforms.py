@@ -8,6 +8,8 @@ give, bit for bit, the float32 ImageNet normalisation of numpy's `(x / 255 - mea
 arithmetic), so augmentation stays keyed on (seed, epoch, index).
 
 alignment = "ipt"   street panorama → aerial-like image (the paper's inverse polar transform); aerial as is.
+alignment = "ground" full-sphere panorama → the ground plane seen from dataset.camera_height_m, dataset.ground_extent_m
+                    metres across (geoloc.data.polar.street_to_ground); aerial as is.
 alignment = "polar" aerial → street-like polar image (SAFA); panorama resized to the same size.
 alignment = "none"  no geometric alignment (the "w/o IPT" row): panorama and aerial only resized.
 
@@ -102,6 +104,8 @@ def align_query(street: np.ndarray, cfg: CrossViewDataConfig, view: str = "panor
         return resize(street, (s, s), cfg.resize_interpolation)
     if cfg.alignment == "ipt":
         return polar.street_to_aerial(street, (s, s), wrapped=wrapped)
+    if cfg.alignment == "ground":  # a sphere's horizon band (datasets.read_split checks)
+        return polar.street_to_ground(street, (s, s), cfg.ground_extent_m, cfg.camera_height_m, wrapped)
     return resize(street[:, :-1] if wrapped else street, tuple(cfg.pano_size), cfg.resize_interpolation)
 
 

@@ -139,6 +139,7 @@ def test_university_1652_satellite_to_drone(tmp_path, recorded):
 @pytest.mark.parametrize("alignment, view, query_hw, reference_hw", [
     ("ipt", "panorama", (32, 32), (32, 32)),
     ("ipt", "sphere", (32, 32), (32, 32)),
+    ("ground", "sphere", (32, 32), (32, 32)),
     ("polar", "panorama", (16, 64), (16, 64)),
     ("none", "panorama", (16, 64), (32, 32)),
     ("none", "image", (32, 32), (32, 32)),  # University-1652's drone photos: the aerial branch's square size

@@ -62,7 +62,7 @@ def test_the_canvas_is_the_view_scattered_to_its_columns():
         assert np.array_equal(view_canvas(street, fov, heading), scattered), (view_width, fov, heading)
 
 
-@pytest.mark.parametrize("alignment", ["ipt", "polar", "none"])
+@pytest.mark.parametrize("alignment", ["ipt", "ground", "polar", "none"])
 def test_the_candidate_inputs_are_each_headings_canvas_aligned(alignment):
     """query_inputs reads each heading's canvas as a window of one doubled canvas: bit for bit the inputs of
     aligning view_canvas(street, fov, h) one heading at a time (the definition)."""

@@ -22,6 +22,7 @@ from geoloc.eval.retrieval_metrics import scored_metrics
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.datasets import CrossViewPairs
 from geoloc.tasks.crossview.heading import heading_metrics
+from geoloc.tasks.crossview.transforms import normalise
 
 STEPS = 36
 
@@ -33,6 +34,9 @@ def random_features() -> torch.nn.Module:
 
 
 def descriptors(x: torch.Tensor, kind: str, conv: torch.nn.Module) -> torch.Tensor:
+    """x: (N, 3, H, W) uint8 images as the data sets give them (normalised here as the task does) or float."""
+    if x.dtype == torch.uint8:
+        x = normalise(x)
     with torch.no_grad():
         y = F.adaptive_avg_pool2d(x if kind == "pixels" else conv(x), 16 if kind == "pixels" else 8).flatten(1)
     return F.normalize(y - y.mean(1, keepdim=True), dim=1)

@@ -4,7 +4,8 @@ chance on them").
 
     PYTHONPATH=. python tools/oracle_sets.py
 
-The 64 px inputs the CPU recipes see (VIGOR: the IPT of the horizon band; University-1652: drone views as photos),
+The 64 px inputs the CPU recipes see (VIGOR: the IPT of the horizon band, and for cross-area also its ground-plane
+projection; University-1652: drone views as photos),
 described by tools/oracle_heading.py's `pixels` and `randconv` descriptors and scored by geoloc's split_metrics.
 """
 
@@ -18,7 +19,9 @@ from oracle_heading import descriptors, random_features
 
 SETTINGS = [("u1652", {"preset": "u1652_medium", "alignment": "none"}),
             ("vigor", {"preset": "vigor_medium", "alignment": "ipt"}),
-            ("vigor", {"preset": "vigor_medium", "alignment": "ipt", "setting": "cross_area"})]
+            ("vigor", {"preset": "vigor_medium", "alignment": "ipt", "setting": "cross_area"}),
+            ("vigor", {"preset": "vigor_medium", "alignment": "ground", "camera_height_m": 2.2,
+                       "setting": "cross_area"})]
 
 
 def main() -> None:
@@ -31,7 +34,8 @@ def main() -> None:
         for kind in ("pixels", "randconv"):
             m = split_metrics(descriptors(queries, kind, conv), descriptors(references, kind, conv), test.split)
             shown = {k: round(100 * v, 2) for k, v in m.items() if k in ("R@1", "R@10", "AP", "hit_rate")}
-            print(name, keys.get("setting", ""), kind, len(queries), len(references), shown, flush=True)
+            print(name, keys.get("setting", ""), keys["alignment"], kind, len(queries), len(references), shown,
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -146,6 +146,10 @@ PRESETS = {
     # sizes and test sets, six / eight times the training places (the small ones over-fit within a few epochs)
     "vigor_medium": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
                          world_margin=2.0, cities=4, grid=8, train=384, val=32),
+    # VIGOR cross-area's larger training world (docs/datasets.md): vigor_medium's tile and image sizes, each city 16 x 16
+    # tiles (4x the tiles and 3.0x the area of vigor_medium's 8 x 8) with 768 training panoramas (3 per tile)
+    "vigor_large": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
+                        world_margin=2.0, cities=4, grid=16, train=768, val=32),
     "u1652_tiny": dict(aerial_size=64, view_size=48, cell_m=1.0, tile_m=96.0, world_margin=2.0, fov_deg=60.0,
                        drone_views=3, extra_gallery=1, train=3, val=2),
     "u1652_small": dict(aerial_size=256, view_size=192, cell_m=0.5, tile_m=120.0, world_margin=2.0, fov_deg=60.0,

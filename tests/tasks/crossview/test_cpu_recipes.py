@@ -1,5 +1,5 @@
-"""experiment=vigor_cpu, u1652_cpu and any_view_cpu: each composes as the README says and trains one tiny epoch
-end to end (on tiny renders of the same layouts instead of the recipes' medium worlds)."""
+"""experiment=vigor_cpu (and vigor_cross_cpu), u1652_cpu and any_view_cpu: each composes as the README says and
+trains one tiny epoch end to end (on tiny renders of the same layouts instead of the recipes' medium worlds)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,10 @@ def test_the_recipes_choose_what_they_say():
     assert (vigor.dataset.name, vigor.dataset.preset, vigor.dataset.alignment) == ("vigor", "vigor_medium", "ipt")
     assert (vigor.loss.name, vigor.sampler.name, vigor.model.shared) == ("infonce", "no_duplicate", True)
     assert (vigor.trainer.max_epochs, vigor.dataset.cache_decoded) == (120, True)  # 11.3 min with the cache
+    cross = compose_train(["experiment=vigor_cross_cpu"])  # vigor_cpu on the larger world's cross-area split
+    assert (cross.dataset.preset, cross.dataset.setting, cross.trainer.max_epochs) == ("vigor_large", "cross_area", 120)
+    assert (cross.dataset.alignment, cross.dataset.camera_height_m) == ("ground", 2.2)  # the renderer's camera
+    assert (cross.loss.name, cross.sampler.name, cross.dataset.cache_decoded) == ("infonce", "no_duplicate", True)
     u1652 = compose_train(["experiment=u1652_cpu"])
     assert (u1652.dataset.name, u1652.dataset.preset, u1652.dataset.alignment) == ("u1652", "u1652_medium", "none")
     assert (u1652.loss.name, u1652.sampler.name, u1652.dataset.aerial_rotation_deg) == ("infonce", "no_duplicate", 90)

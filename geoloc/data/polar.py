@@ -10,9 +10,8 @@ Both share one angle convention, the one of CVUSA panoramas: column 0 looks sout
 the columns turn clockwise seen from above (south, west, north, east). North is up in aerial images.
 
 The sampling grids depend only on (input shape, output shape) (and the ground projection's metres), so they are
-built once and cached; a transform
-is then one ``cv2.remap`` call. The grid builders are public so that a torch pipeline can reuse them
-(``normalized_grid`` converts a grid for ``torch.nn.functional.grid_sample``).
+built once and cached; a transform is then one ``cv2.remap`` call. The grid builders are public so that a torch
+pipeline can reuse them (``normalized_grid`` converts a grid for ``torch.nn.functional.grid_sample``).
 """
 from __future__ import annotations
 
@@ -149,12 +148,19 @@ def street_to_aerial(img: np.ndarray, out_hw: tuple[int, int] = (288, 288), wrap
     Same channels and dtype as the input. wrapped: ``img`` already ends with a copy of its first column
     (H_s x (W_s + 1), e.g. a window of a panorama laid twice side by side), so the copy that appends it is skipped.
     """
+    out_hw = _check_hw(out_hw, "out_hw")
+    return _remap_wrapping(img, wrapped, lambda in_hw: street_to_aerial_grid(in_hw, out_hw))
+
+
+def _remap_wrapping(img: np.ndarray, wrapped: bool, grid) -> np.ndarray:
+    """Sample a street image whose columns wrap with `grid(in_hw)` -> (map_x, map_y): the first column is appended
+    (unless `wrapped`: the image already ends with its copy), so values past W - 1 interpolate towards column 0."""
     img = _check_image(img, "street image")
     if wrapped and img.shape[1] < 2:
         raise ValueError(f"a wrapped street image ends with a copy of its first column, so it has >= 2 columns; "
                          f"got shape {img.shape}")
     in_hw = (img.shape[0], img.shape[1] - 1) if wrapped else tuple(img.shape[:2])
-    map_x, map_y = street_to_aerial_grid(in_hw, _check_hw(out_hw, "out_hw"))
+    map_x, map_y = grid(in_hw)
     return _remap(img if wrapped else np.concatenate([img, img[:, :1]], axis=1), map_x, map_y)
 
 
@@ -195,7 +201,5 @@ def street_to_ground(img: np.ndarray, out_hw: tuple[int, int], extent_m: float, 
     """The ground-plane projection of a horizon band (H x W (x C), uint8 or float32) to `out_hw`, covering
     `extent_m` metres, seen from `camera_height_m` metres. Bilinear; the columns wrap. wrapped: `img` already ends
     with a copy of its first column (as in street_to_aerial)."""
-    img = _check_image(img, "street image")
-    in_hw = (img.shape[0], img.shape[1] - 1) if wrapped else tuple(img.shape[:2])
-    map_x, map_y = street_to_ground_grid(in_hw, _check_hw(out_hw, "out_hw"), float(extent_m), float(camera_height_m))
-    return _remap(img if wrapped else np.concatenate([img, img[:, :1]], axis=1), map_x, map_y)
+    out_hw, extent_m, camera_height_m = _check_hw(out_hw, "out_hw"), float(extent_m), float(camera_height_m)
+    return _remap_wrapping(img, wrapped, lambda in_hw: street_to_ground_grid(in_hw, out_hw, extent_m, camera_height_m))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from geoloc import registry
 from geoloc.launch import run
 from geoloc.synthetic import generate
 
@@ -24,6 +25,7 @@ def test_the_recipes_choose_what_they_say():
     assert (cross.dataset.preset, cross.dataset.setting, cross.trainer.max_epochs) == ("vigor_large", "cross_area", 120)
     assert (cross.dataset.alignment, cross.dataset.camera_height_m) == ("ground", 2.2)  # the renderer's camera
     assert (cross.loss.name, cross.sampler.name, cross.dataset.cache_decoded) == ("infonce", "no_duplicate", True)
+    assert (cross.optim.weight_decay, cross.backbone.model_args.drop_path_rate) == (0.1, 0.2)  # vigor_cpu: 0.01, 0
     u1652 = compose_train(["experiment=u1652_cpu"])
     assert (u1652.dataset.name, u1652.dataset.preset, u1652.dataset.alignment) == ("u1652", "u1652_medium", "none")
     assert (u1652.loss.name, u1652.sampler.name, u1652.dataset.aerial_rotation_deg) == ("infonce", "no_duplicate", 90)
@@ -32,6 +34,17 @@ def test_the_recipes_choose_what_they_say():
     assert (any_view.loss.name, any_view.dataset.alignment, any_view.dataset.random_heading) == (
         "any_view_infonce", "ipt", True)
     assert compose_train([]).views.name == "single"  # the default run has one query view
+
+
+def test_the_cross_area_recipe_builds_its_stochastic_depth():
+    """backbone.model_args reaches timm: every ConvNeXt block but the first drops its residual branch, at rates
+    rising to the recipe's 0.2 in the last block (timm's linear rule); vigor_cpu has none."""
+    cross = compose_train(["experiment=vigor_cross_cpu"])
+    body = registry.build("backbone", cross.backbone)
+    rates = [m.drop_prob for m in body.modules() if type(m).__name__ == "DropPath"]
+    assert len(rates) == 5 and rates[-1] == pytest.approx(0.2)  # depths 1-1-3-1: six blocks, the first at rate 0
+    plain = registry.build("backbone", compose_train(["experiment=vigor_cpu"]).backbone)
+    assert not [m for m in plain.modules() if type(m).__name__ == "DropPath"]
 
 
 def last_validation(run_dir) -> dict:

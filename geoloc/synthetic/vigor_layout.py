@@ -55,15 +55,26 @@ def jobs(opts: VigorOptions, train: int, val: int) -> list:
 def run(cfg: SynthConfig, opts: VigorOptions, seed: int, kind: str, index, number: int, root: Path) -> dict:
     """Render and write one job's files -> its record (what finish() needs)."""
     if kind == "tiles":
-        city = build_city(cfg, opts.grid, seed, index)
-        names = []
-        for ix, iy, rgb in render_tiles(cfg, city, seed):
-            names.append(satellite_name(city, ix, iy))
-            LY.write_bytes(root / city.name / "satellite" / names[-1], LY.encode(rgb, ".png"), atomic=False)
+        names = write_tiles(cfg, build_city(cfg, opts.grid, seed, index), seed, root)
         return {"kind": kind, "city": index, "names": names}
     c, k = index
-    city = build_city(cfg, opts.grid, seed, c)
-    r_pos, *rngs = city_rngs(seed, c, SPLIT_CODES[kind], k)
+    line = write_panorama(cfg, build_city(cfg, opts.grid, seed, c), seed, kind, k, root)
+    return {"kind": kind, "city": c, "line": line}
+
+
+def write_tiles(cfg: SynthConfig, city: City, seed: int, root: Path) -> list[str]:
+    """Render and write every satellite tile of `city` -> their file names, row by row from the north-west."""
+    names = []
+    for ix, iy, rgb in render_tiles(cfg, city, seed):
+        names.append(satellite_name(city, ix, iy))
+        LY.write_bytes(root / city.name / "satellite" / names[-1], LY.encode(rgb, ".png"), atomic=False)
+    return names
+
+
+def write_panorama(cfg: SynthConfig, city: City, seed: int, split: str, k: int, root: Path) -> str:
+    """Render and write panorama k of the city's `split` ('train' / 'val') -> its split line. Where it stands and
+    its name come from (seed, city, split, k) alone; its look also from the city's aerial conditions."""
+    r_pos, *rngs = city_rngs(seed, city.index, SPLIT_CODES[split], k)
     east, north = panorama_position(city, r_pos)
     panoid = "".join(r_pos.choice(list(ID_CHARS), 22))
     lat, lon = offset_to_latlon(city.origin, east, north)
@@ -71,7 +82,7 @@ def run(cfg: SynthConfig, opts: VigorOptions, seed: int, kind: str, index, numbe
     out = render_panorama(cfg, city, rngs, east, north)
     LY.write_bytes(root / city.name / "panorama" / name,
                    LY.encode(out["pano"], ".jpg", out["conditions"].jpeg_quality), atomic=False)
-    return {"kind": kind, "city": c, "line": split_line(city, name, east, north, cfg.aerial_size)}
+    return split_line(city, name, east, north, cfg.aerial_size)
 
 
 def finish(root: Path, opts: VigorOptions, jobs: list, records: dict) -> None:

@@ -1,0 +1,84 @@
+"""One city of a rendered synthetic VIGOR world under another sun or season: the same places, written as a new
+dataset root, for diagnosis (docs/datasets.md, "What a new city changes").
+
+The city's satellite tiles are rendered again with the city's aerial conditions changed. Its panoramas are rendered
+again too (unless panoramas=False), their conditions drawn around the new ones as the renderer draws them
+(appearance.other_time), from the same random streams: every position, name, car and split line stays as it was.
+The other cities, the split files and the offsets are linked to the source, which is only read.
+
+    python tools/relight_vigor.py SOURCE OUT --city Chicago --sun-elevation 64
+    python evaluate.py ckpt=... dataset=vigor dataset.root=OUT dataset.setting=cross_area "dataset.cities=[Chicago]"
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+from .city import CITY_NAMES, build_city
+from .config import SynthConfig, VigorOptions
+from .generate import MARKER
+from .layouts import write_bytes
+from .vigor_layout import CROSS_AREA_FILE, write_panorama, write_tiles
+
+
+def relight_city(source, out, city: str, sun_elevation: float | None = None, sun_azimuth: float | None = None,
+                 season: float | None = None, panoramas: bool = True) -> Path:
+    """Write OUT: the vigor dataset at `source` with `city` rendered again under the changed conditions (None
+    keeps the city's own). -> OUT."""
+    source, out = Path(source).resolve(), Path(out)
+    marker = _vigor_marker(source)
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"{out} is not empty; relight writes a new dataset root, so give a new folder")
+    opts = VigorOptions(**marker["options"])
+    names = CITY_NAMES[:opts.cities]
+    if city not in names:
+        raise ValueError(f"{source} has the cities {list(names)}, not {city!r}")
+    if sun_elevation is not None and not 0.0 < sun_elevation <= 90.0:
+        raise ValueError(f"sun_elevation must be in (0, 90] degrees, got {sun_elevation}")
+    if season is not None and not 0.0 <= season <= 1.0:
+        raise ValueError(f"season must be in [0, 1] (0 summer .. 1 winter), got {season}")
+    cfg, seed = SynthConfig(**marker["config"]), int(marker["seed"])
+    own = build_city(cfg, opts.grid, seed, names.index(city))
+    sun = own.aerial.sun
+    sun = replace(sun, elevation=sun.elevation if sun_elevation is None else float(sun_elevation),
+                  azimuth=sun.azimuth if sun_azimuth is None else float(sun_azimuth) % 360.0)
+    changed = replace(own, aerial=replace(own.aerial, sun=sun, season=own.aerial.season if season is None
+                                          else float(season)))
+    out.mkdir(parents=True, exist_ok=True)
+    for entry in source.iterdir():
+        if entry.name not in (city, MARKER):
+            (out / entry.name).symlink_to(entry)
+    write_tiles(cfg, changed, seed, out)
+    panorama_dir = out / city / "panorama"
+    if panoramas:
+        lines = [write_panorama(cfg, changed, seed, split, k, out)
+                 for split, count in (("train", marker["train"]), ("val", marker["val"])) for k in range(count)]
+        expected = (source / "splits" / city / CROSS_AREA_FILE).read_text().splitlines()
+        if lines != expected:
+            raise RuntimeError(f"the panoramas rendered again for {city} do not stand where {source}'s split file "
+                               "says: the source was rendered by another version of the renderer")
+    else:
+        panorama_dir.symlink_to(source / city / "panorama")
+    relit = {"source": str(source), "city": city, "sun_azimuth": sun.azimuth, "sun_elevation": sun.elevation,
+             "season": changed.aerial.season, "panoramas": panoramas,
+             "was": {"sun_azimuth": own.aerial.sun.azimuth, "sun_elevation": own.aerial.sun.elevation,
+                     "season": own.aerial.season}}
+    # written last, as the renderer does: a folder without it is unfinished (geoloc.synthetic.tile_geometry)
+    write_bytes(out / MARKER, (json.dumps({**marker, "relit": relit}, indent=1, sort_keys=True) + "\n").encode())
+    return out
+
+
+def _vigor_marker(source: Path) -> dict:
+    path = source / MARKER
+    if not path.is_file():
+        raise FileNotFoundError(f"{source} holds no {MARKER}: relight reads a synthetic vigor dataset that geoloc "
+                                "rendered (e.g. ~/.cache/geoloc/synthetic/vigor-vigor_medium-seed0)")
+    marker = json.loads(path.read_text())
+    if marker.get("layout") != "vigor" or not marker.get("complete") or "options" not in marker:
+        raise ValueError(f"{path}: relight needs a complete synthetic vigor dataset, found layout "
+                         f"{marker.get('layout')!r}, complete={marker.get('complete')}")
+    if "relit" in marker:
+        raise ValueError(f"{path}: {source} is itself relit; relight the dataset it came from "
+                         f"({marker['relit']['source']})")
+    return marker

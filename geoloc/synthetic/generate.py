@@ -99,7 +99,7 @@ def rendering(root: Path):
 def _render(layout: str, root: Path, marker: dict, cfg, opts, train: int, val: int, seed: int, workers: int,
             progress: bool) -> Path:
     root.mkdir(parents=True, exist_ok=True)
-    _write_marker(root, marker, complete=False)
+    write_marker(root, marker, complete=False)
 
     jobs = WRITERS[layout].jobs(opts, train, val) if layout in WRITERS else _jobs(layout, train, val)
     done = root / PARTIAL
@@ -130,7 +130,7 @@ def _render(layout: str, root: Path, marker: dict, cfg, opts, train: int, val: i
     else:
         _finish(layout, root, jobs, done)
     shutil.rmtree(done)
-    _write_marker(root, marker, complete=True)
+    write_marker(root, marker, complete=True)
     return root
 
 
@@ -186,7 +186,8 @@ def _derived(layout: str, root: Path, cfg: SynthConfig, opts, missing_only: bool
     writer.derived(root, cfg, opts)
 
 
-def _write_marker(root: Path, marker: dict, complete: bool) -> None:
+def write_marker(root: Path, marker: dict, complete: bool) -> None:
+    """The marker, written atomically; a renderer writes it complete only after every other file."""
     text = json.dumps({**marker, "complete": complete}, indent=1, sort_keys=True) + "\n"
     LY.write_bytes(root / MARKER, text.encode())
 

@@ -17,8 +17,7 @@ from pathlib import Path
 
 from .city import CITY_NAMES, build_city
 from .config import SynthConfig, VigorOptions
-from .generate import MARKER
-from .layouts import write_bytes
+from .generate import MARKER, write_marker
 from .vigor_layout import CROSS_AREA_FILE, write_panorama, write_tiles
 
 
@@ -65,7 +64,7 @@ def relight_city(source, out, city: str, sun_elevation: float | None = None, sun
              "was": {"sun_azimuth": own.aerial.sun.azimuth, "sun_elevation": own.aerial.sun.elevation,
                      "season": own.aerial.season}}
     # written last, as the renderer does: a folder without it is unfinished (geoloc.synthetic.tile_geometry)
-    write_bytes(out / MARKER, (json.dumps({**marker, "relit": relit}, indent=1, sort_keys=True) + "\n").encode())
+    write_marker(out, {**marker, "relit": relit}, complete=True)
     return out
 
 
@@ -74,7 +73,10 @@ def _vigor_marker(source: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{source} holds no {MARKER}: relight reads a synthetic vigor dataset that geoloc "
                                 "rendered (e.g. ~/.cache/geoloc/synthetic/vigor-vigor_medium-seed0)")
-    marker = json.loads(path.read_text())
+    try:
+        marker = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}); render the dataset again into an empty folder") from err
     if marker.get("layout") != "vigor" or not marker.get("complete") or "options" not in marker:
         raise ValueError(f"{path}: relight needs a complete synthetic vigor dataset, found layout "
                          f"{marker.get('layout')!r}, complete={marker.get('complete')}")

@@ -72,6 +72,9 @@ def test_bad_requests_are_refused(source, tmp_path):
         relight_city(source, tmp_path / "b", "Chicago", sun_elevation=-5.0)
     with pytest.raises(FileNotFoundError, match=MARKER):
         relight_city(tmp_path / "busy", tmp_path / "c", "Chicago")
+    (busy / MARKER).write_text("{ cut short")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        relight_city(busy, tmp_path / "c", "Chicago")
     relit = relight_city(source, tmp_path / "d", "Chicago", sun_elevation=50.0, panoramas=False)
     with pytest.raises(ValueError, match="itself relit"):
         relight_city(relit, tmp_path / "e", "Chicago")

@@ -20,6 +20,14 @@ QUERY_VIEWS = ("panorama", "sphere", "image", "aerial")
 # the fields that hold one row per query / per reference (what cutting a split to fewer rows cuts)
 PER_QUERY = ("queries", "positives", "semi_positives", "query_latlon", "query_xy", "query_labels", "query_tile_px",
              "query_semi_tile_px")
+# the label sets query_tile_px comes from (RetrievalSplit.tile_labels), each metre figure measured against it names
+TILE_LABELS = {
+    "vigor_corrected": "SliceMatch's corrected VIGOR labels, at each city's metres per pixel",
+    "vigor_original": "VIGOR's original labels, converted from the 0.114 m a pixel they were made at",
+    "synthetic": "the synthetic renderer's exact positions",
+    "tile_centre": "the camera at the tile centre",
+    "positions": "the query and tile positions given with the images",
+}
 PER_REFERENCE = ("references", "reference_latlon", "reference_xy", "reference_labels", "reference_size_px",
                  "reference_metres_per_px")
 
@@ -50,7 +58,11 @@ class RetrievalSplit:
     synthetic renderer's); needs reference_size_px. The tile's extent is reference_extent_m;
     query_tile_px (Q, 2) float (row, col) or None: the query's position in its positive tile, in continuous pixel
     coordinates of that frame ((0, 0) the top-left corner, (H/2, W/2) the tile centre, rows south, columns east);
-    query_semi_tile_px (Q, S, 2) float or None: the same in each semi-positive, NaN where semi_positives is -1.
+    query_semi_tile_px (Q, S, 2) float or None: the same in each semi-positive, NaN where semi_positives is -1; a
+    position may lie outside its tile (SliceMatch's corrected VIGOR labels: at the true scale some panoramas are not
+    in a "semi-positive" tile), and only positions inside a tile are used (semi_inside);
+    tile_labels: the label set query_tile_px comes from (a key of TILE_LABELS), which every metre figure measured
+    against it names; None where the split has no positions in its tiles.
     """
 
     name: str
@@ -71,6 +83,7 @@ class RetrievalSplit:
     reference_metres_per_px: np.ndarray | None = None
     query_tile_px: np.ndarray | None = None
     query_semi_tile_px: np.ndarray | None = None
+    tile_labels: str | None = None
 
     def __post_init__(self):
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731  (frozen: set once, here)
@@ -113,6 +126,9 @@ class RetrievalSplit:
                                  f"but its positive reference {self.positives[i]} has label "
                                  f"{self.reference_labels[self.positives[i]]} ({len(wrong)} such queries)")
         self._check_tiles(put)
+        if self.tile_labels is not None and self.tile_labels not in TILE_LABELS:
+            raise ValueError(f"{self._where()}: tile_labels must be one of {sorted(TILE_LABELS)}, got "
+                             f"{self.tile_labels!r}")
 
     @cached_property
     def relevance(self) -> Relevance:
@@ -244,30 +260,41 @@ class RetrievalSplit:
             put("reference_metres_per_px", scale)
         if self.query_tile_px is not None:
             put("query_tile_px", self._tile_px("query_tile_px", self.query_tile_px, (q, 2),
-                                               self.positives[:, None]))
+                                               self.positives[:, None], inside=True))
         if self.query_semi_tile_px is not None:
             if self.semi_positives is None:
                 raise ValueError(f"{self._where()}: query_semi_tile_px needs semi_positives, the tiles it refers to")
             s = self.semi_positives.shape[1]
             put("query_semi_tile_px", self._tile_px("query_semi_tile_px", self.query_semi_tile_px, (q, s, 2),
-                                                    self.semi_positives))
+                                                    self.semi_positives, inside=False))
 
-    def _tile_px(self, key: str, value, shape: tuple, tiles: np.ndarray) -> np.ndarray:
-        """(row, col) positions in the given tiles ((Q, S) reference indices, -1 for none): finite and inside each
-        tile's pixel frame where a tile is given, NaN where none is."""
+    def semi_inside(self) -> np.ndarray | None:
+        """(Q, S) bool: the semi-positives whose position lies inside their tile (None without positions)."""
+        if self.query_semi_tile_px is None:
+            return None
+        frame = self.reference_size_px[np.maximum(self.semi_positives, 0)]
+        pos = self.query_semi_tile_px
+        return (self.semi_positives >= 0) & (pos >= 0).all(-1) & (pos <= frame).all(-1)
+
+    def _tile_px(self, key: str, value, shape: tuple, tiles: np.ndarray, inside: bool) -> np.ndarray:
+        """(row, col) positions in the given tiles ((Q, S) reference indices, -1 for none): finite (and with
+        `inside`, inside each tile's pixel frame) where a tile is given, NaN where none is."""
         a = np.asarray(value, np.float64)
         if a.shape != shape:
             raise ValueError(f"{self._where()}: {key} has shape {a.shape}, expected {shape} of (row, col) pixels")
         a = a.reshape(shape[0], -1, 2).copy()
         given = tiles >= 0
         frame = self.reference_size_px[np.where(given, tiles, 0)]
-        inside = np.isfinite(a).all(-1) & (a >= 0).all(-1) & (a <= frame).all(-1)
-        bad = given & ~inside
+        ok = np.isfinite(a).all(-1)
+        if inside:
+            ok &= (a >= 0).all(-1) & (a <= frame).all(-1)
+        bad = given & ~ok
         if bad.any():
             i, j = (int(v) for v in np.argwhere(bad)[0])
             tile = int(tiles[i, j])
+            where = (f"outside tile {tile} ({self.references[tile]}) of {frame[i, j].tolist()} pixels; a position is "
+                     "(row, col) within (0, 0)..(height, width)") if inside else "not a finite (row, col)"
             raise ValueError(f"{self._where()}: {key} of query {i} ({self.queries[i]}) is {a[i, j].tolist()}, "
-                             f"outside tile {tile} ({self.references[tile]}) of {frame[i, j].tolist()} pixels; "
-                             f"a position is (row, col) within (0, 0)..(height, width) ({bad.sum()} such)")
+                             f"{where} ({bad.sum()} such)")
         a[~given] = np.nan
         return a.reshape(shape)

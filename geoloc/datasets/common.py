@@ -16,7 +16,8 @@ def pairs_split(name: str, root, pairs: list[tuple[Path, Path]], query_view: str
                 tile: tuple[int, float | None] | None = None) -> RetrievalSplit:
     """A one-to-one split from (street, aerial) pairs: query i matches reference i. positions: (kind, P x 2),
     kind "xy" (metres) or "latlon" (degrees), where pair i was taken; its query and reference share it.
-    tile: (side in pixels, metres per pixel or None) of the square aerial tiles, each centred on its camera."""
+    tile: (side in pixels, metres per pixel or None) of the square aerial tiles, each centred on its camera (the
+    label set "tile_centre")."""
     where = {}
     if positions is not None:
         kind, array = positions
@@ -25,7 +26,7 @@ def pairs_split(name: str, root, pairs: list[tuple[Path, Path]], query_view: str
         side, scale = tile
         where.update(reference_size_px=np.full((len(pairs), 2), side, np.int64),
                      reference_metres_per_px=None if scale is None else np.full(len(pairs), float(scale)),
-                     query_tile_px=np.full((len(pairs), 2), side / 2))
+                     query_tile_px=np.full((len(pairs), 2), side / 2), tile_labels="tile_centre")
     return RetrievalSplit(name=name, root=Path(root), queries=[street for street, _ in pairs],
                           references=[aerial for _, aerial in pairs], positives=np.arange(len(pairs)),
                           query_view=query_view, **where)

@@ -13,9 +13,16 @@ column 320 - f2 (CCVPE's datasets.py). They give each query's position in its ti
 query_semi_tile_px), with the per-city metres per pixel of CCVPE's train_VIGOR.py (METRES_PER_PX); metre
 distances between places come from the lat/lon in the file names.
 
-SliceMatch's corrected labels (`splits_dir=splits__corrected`) are read as released: the same 13-field lines in
-`<City>/same_area_balanced_{train,test}__corrected.txt` and `pano_label_balanced__corrected.txt`, beside
-`satellite_list.txt`.
+Two label sets give the offsets (docs/conventions.md "VIGOR offsets and metres"):
+- `vigor_corrected`: SliceMatch's re-computed labels, in `splits__corrected/<City>/`, files named
+  `same_area_balanced_{train,test}__corrected.txt` and `pano_label_balanced__corrected.txt` beside
+  `satellite_list.txt`: pixels at each city's true scale, read as released. Some semi-positive offsets lie
+  outside the 640 px tile (at the true scale the panorama is not in that tile); they are kept as the file gives
+  them, and only positions inside a tile are ever used.
+- `vigor_original`: VIGOR's own files. Their offsets were computed at 0.114 m a pixel in every city (VIGOR's
+  evaluate_from_npy.py), so they are converted to the city's true pixels: offset * 0.114 / METRES_PER_PX[city].
+`splits_dir=null` (the default) reads `splits__corrected` when the root has it, else `splits`; the files' names say
+which set a folder holds. The split records it (RetrievalSplit.tile_labels), and every metre figure names it.
 
 geoloc's synthetic vigor tree (geoloc/synthetic/vigor_layout.py) renders tiles of its own size and scale, which its
 marker gives (geoloc.synthetic.tile_geometry), and writes the offsets unrounded in ROOT/geoloc_offsets.json
@@ -47,6 +54,10 @@ TILE_PX = 640  # the released satellite tiles are 640 x 640
 # ground metres per tile pixel in each city (CCVPE's train_VIGOR.py)
 METRES_PER_PX = {"NewYork": 0.113248, "Seattle": 0.100817, "SanFrancisco": 0.118141, "Chicago": 0.111262}
 CORRECTED = "__corrected"  # SliceMatch's file-name suffix
+SPLITS_DIRS = ("splits__corrected", "splits")  # splits_dir=null: the first of these that the root holds
+# VIGOR's original offsets were made at this scale in every city (its evaluate_from_npy.py, "0.114 is resolution in
+# meter"); SliceMatch's corrected ones at each city's own (METRES_PER_PX)
+ORIGINAL_METRES_PER_PX = 0.114
 
 
 def default_cities(setting: str, split: str) -> tuple[str, ...]:
@@ -63,11 +74,13 @@ def split_file(setting: str, split: str) -> str:
 
 
 def vigor_split(root, setting: str = "same_area", split: str = "test", cities=None,
-                splits_dir: str = "splits") -> RetrievalSplit:
+                splits_dir: str | None = None) -> RetrievalSplit:
     """Read (setting, split) for the given cities (default: the setting's, see default_cities). splits_dir names
     the folder of split files under root: `splits` as released, or `splits__corrected` (SliceMatch's re-computed
-    labels: the same format, file names ending in `__corrected`)."""
+    labels: the same format, file names ending in `__corrected`); None: the corrected folder where the root has
+    one (module docstring)."""
     root = Path(root)
+    splits_dir = splits_dir or default_splits_dir(root)
     cities = tuple(default_cities(setting, split) if cities is None else cities)
     listing = split_file(setting, split)
     if not cities or len(set(cities)) != len(cities):
@@ -75,6 +88,7 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
     tile_px, synthetic_scale = tile_frame(root, TILE_PX)
     truth = read_offsets(root)
     references, ref_latlon, ref_scale, queries, q_latlon, positives, semi, offsets = [], [], [], [], [], [], [], []
+    label_sets = {}
     for city in cities:
         city_dir = root / splits_dir / city
         if not city_dir.is_dir():
@@ -89,6 +103,10 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
             ref_latlon.append(satellite_latlon(name, f"{city_dir / 'satellite_list.txt'}:{line_no}"))
         ref_scale += [synthetic_scale or METRES_PER_PX.get(city, np.nan)] * (len(references) - len(ref_scale))
         path = _listing(city_dir, listing)
+        labels = ("synthetic" if synthetic_scale else
+                  "vigor_corrected" if path.stem.endswith(CORRECTED) else "vigor_original")
+        label_sets.setdefault(labels, path)
+        to_true_px = original_to_true_px(city) if labels == "vigor_original" else 1.0
         for pano, sats, deltas, line_no in _split_lines(path):
             where = f"{path}:{line_no}"
             missing = [s for s in sats if s not in index]
@@ -99,10 +117,15 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
             q_latlon.append(panorama_latlon(pano, where))
             positives.append(index[sats[0]])
             semi.append([index[s] for s in sats[1:]])
-            offsets.append(deltas if truth is None else _true_offsets(truth, city, pano, sats, deltas, where))
+            offsets.append(np.multiply(deltas, to_true_px) if truth is None
+                           else _true_offsets(truth, city, pano, sats, deltas, where))
     if not queries:
         raise ValueError(f"VIGOR {setting} {split}: the {listing} files of {list(cities)} under {root / splits_dir} "
                          "list no panorama")
+    if len(label_sets) > 1:
+        found = ", ".join(f"{name} ({path})" for name, path in label_sets.items())
+        raise ValueError(f"VIGOR {setting} {split}: the cities' split files hold different label sets: {found}. "
+                         "Read every city from one folder of one set (dataset.splits_dir)")
     deltas = np.asarray(offsets, np.float64)  # Q x 4 x (north, east) pixels, tile centre minus panorama
     position = np.stack([tile_px / 2 + deltas[..., 0], tile_px / 2 - deltas[..., 1]], -1)  # (row, col)
     scale = np.asarray(ref_scale, np.float64)
@@ -112,7 +135,19 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
         query_latlon=np.asarray(q_latlon), reference_latlon=np.asarray(ref_latlon),
         reference_size_px=np.full((len(references), 2), tile_px, np.int64),
         reference_metres_per_px=None if np.isnan(scale).any() else scale,  # a city of unknown scale: none
-        query_tile_px=position[:, 0], query_semi_tile_px=position[:, 1:])
+        query_tile_px=position[:, 0], query_semi_tile_px=position[:, 1:], tile_labels=next(iter(label_sets)))
+
+
+def original_to_true_px(city: str) -> float:
+    """The factor from VIGOR's original offsets (made at 0.114 m a pixel) to `city`'s true pixels; 1 for a city
+    of unknown scale, whose offsets are kept as written (and give no metres)."""
+    return ORIGINAL_METRES_PER_PX / METRES_PER_PX[city] if city in METRES_PER_PX else 1.0
+
+
+def default_splits_dir(root: Path) -> str:
+    """The folder of split files read when dataset.splits_dir is null: SliceMatch's corrected labels where the root
+    has them, else VIGOR's originals."""
+    return next((name for name in SPLITS_DIRS if (root / name).is_dir()), SPLITS_DIRS[-1])
 
 
 def _listing(city_dir: Path, listing: str) -> Path:
@@ -205,7 +240,8 @@ def _check_choice(key: str, value, choices) -> None:
 
 @register("dataset", "vigor")
 def vigor(root: str | None, split: str, setting: str = "same_area", cities: list[str] | None = None,
-          splits_dir: str = "splits", preset: str = "vigor_small", seed: int = 0, workers: int = 2) -> RetrievalSplit:
+          splits_dir: str | None = None, preset: str = "vigor_small", seed: int = 0,
+          workers: int = 2) -> RetrievalSplit:
     """VIGOR in its released layout (module docstring); root=None renders the synthetic `vigor` layout."""
     split = "test" if split == "val" else split  # VIGOR has no val split; its papers validate on test
     if not root:
@@ -214,7 +250,8 @@ def vigor(root: str | None, split: str, setting: str = "same_area", cities: list
         root = Path(ensure_dataset("vigor", default_cache() / f"vigor-{preset}-seed{seed}", preset=preset,
                                    train=None, val=None, seed=seed, workers=workers))
         if cities is None:  # a small preset renders fewer than four cities: the setting's that it has
-            cities = [c for c in default_cities(setting, split) if (root / splits_dir / c).is_dir()]
+            folder = root / (splits_dir or default_splits_dir(root))
+            cities = [c for c in default_cities(setting, split) if (folder / c).is_dir()]
     out = vigor_split(root, setting=setting, split=split, cities=cities, splits_dir=splits_dir)
     return with_view(out, "sphere")
 

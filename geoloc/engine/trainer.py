@@ -358,7 +358,9 @@ class Trainer:
 
     def _print_metrics(self, epoch: int, metrics: dict[str, float]) -> None:
         if dist.is_main():
-            text = "  ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float))
+            # floats as figures; a string names what they were measured against (e.g. a label set)
+            text = "  ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in metrics.items()
+                             if isinstance(v, (float, str)))
             tqdm.write(f"[epoch {epoch}] {text}")
 
 

@@ -15,11 +15,14 @@ from geoloc.synthetic import MARKER, generate
 from conftest import write_cvusa
 from helpers.cvact_data import write_act_mat
 
-# DESIGN.md's real example line: the positive's centre is 23 px north and 29 px west of the panorama
+# a released line (Chicago, SliceMatch's corrected test file): the positive's centre is 23 px north and 29 px west
+# of the panorama; its other semi-positives lie further off (tests/fixtures/released holds the real lines)
 PANO = "L-1poX8YZAmBZVLMqBu-4w,41.877949,-87.689396,.jpg"
 SATS = ["satellite_41.877971796211014_-87.68943505304125.png", "satellite_41.877971796211014_-87.68899446364951.png",
         "satellite_41.87764359775486_-87.68943505304125.png", "satellite_41.87764359775486_-87.68899446364951.png"]
 LINE = f"{PANO} {SATS[0]} 23.0 -29.0 {SATS[1]} 20.0 300.0 {SATS[2]} -270.0 -29.0 {SATS[3]} -270.0 300.0\n"
+# VIGOR's original labels were made at 0.114 m a pixel: in Chicago's true pixels they are this much larger
+TO_CHICAGO_PX = 0.114 / 0.111262
 
 
 def _release(root: Path, folder: str = "splits", suffix: str = "", line: str = LINE) -> Path:
@@ -32,8 +35,8 @@ def _release(root: Path, folder: str = "splits", suffix: str = "", line: str = L
 
 
 def test_released_offsets_give_pixel_positions_and_metres(tmp_path):
-    s = vigor_split(_release(tmp_path), "same_area", "test", cities=["Chicago"])
-    assert s.reference_size_px.tolist() == [[640, 640]] * 4
+    s = vigor_split(_release(tmp_path, "splits__corrected", "__corrected"), "same_area", "test", cities=["Chicago"])
+    assert s.reference_size_px.tolist() == [[640, 640]] * 4 and s.tile_labels == "vigor_corrected"
     assert s.reference_metres_per_px.tolist() == [METRES_PER_PX["Chicago"]] * 4 == [0.111262] * 4
     # row = 320 + north offset, col = 320 - east offset (CCVPE's datasets.py)
     assert s.query_tile_px.tolist() == [[343.0, 349.0]]
@@ -45,10 +48,23 @@ def test_released_offsets_give_pixel_positions_and_metres(tmp_path):
     np.testing.assert_allclose(gps, [east, north], atol=0.3)
 
 
-def test_offsets_outside_the_tile_are_refused(tmp_path):
-    root = _release(tmp_path, line=LINE.replace("20.0 300.0", "20.0 330.0"))
-    with pytest.raises(ValueError, match=r"query_semi_tile_px of query 0 .* is \[340.0, -10.0\], outside tile 1"):
+def test_original_offsets_are_read_at_the_scale_they_were_made_with(tmp_path):
+    """The same numbers in VIGOR's own `splits/` files mean 0.114 m a pixel: converted to the city's pixels."""
+    s = vigor_split(_release(tmp_path), "same_area", "test", cities=["Chicago"])
+    assert s.tile_labels == "vigor_original"
+    np.testing.assert_allclose(s.query_tile_px, [[320 + 23 * TO_CHICAGO_PX, 320 + 29 * TO_CHICAGO_PX]])
+    np.testing.assert_allclose(s.query_tile_offset_m(), [[29 * 0.114, -23 * 0.114]])
+
+
+def test_a_positive_outside_its_tile_is_refused_a_semi_positive_is_kept(tmp_path):
+    root = _release(tmp_path, "splits__corrected", "__corrected", LINE.replace("20.0 300.0", "20.0 330.0"))
+    s = vigor_split(root, "same_area", "test", cities=["Chicago"])
+    assert s.query_semi_tile_px[0, 0].tolist() == [340.0, -10.0] and s.semi_inside().tolist() == [[False, True, True]]
+    (root / "splits__corrected/Chicago/same_area_balanced_test__corrected.txt").write_text(
+        LINE.replace("23.0 -29.0", "23.0 -330.0"))
+    with pytest.raises(ValueError, match=r"query_tile_px of query 0 .* is \[343.0, 650.0\], outside tile 0"):
         vigor_split(root, "same_area", "test", cities=["Chicago"])
+    root = _release(tmp_path / "original")
     (root / "splits/Chicago/same_area_balanced_test.txt").write_text(LINE.replace("23.0", "nan"))
     with pytest.raises(ValueError, match=":1: the pixel offsets must be finite"):
         vigor_split(root, "same_area", "test", cities=["Chicago"])
@@ -58,7 +74,7 @@ def test_an_unknown_city_has_no_scale(tmp_path):
     _release(tmp_path)
     (tmp_path / "splits/Chicago").rename(tmp_path / "splits/Boston")
     s = vigor_split(tmp_path, "same_area", "test", cities=["Boston"])
-    assert s.reference_metres_per_px is None and s.query_tile_px.tolist() == [[343.0, 349.0]]
+    assert s.reference_metres_per_px is None and s.query_tile_px.tolist() == [[343.0, 349.0]]  # as written
 
 
 @pytest.mark.parametrize("setting, split", [("same_area", "train"), ("same_area", "test"), ("cross_area", "test")])
@@ -68,8 +84,9 @@ def test_slicematch_corrected_files_are_read_as_released(tmp_path, setting, spli
     s = vigor_split(root, setting, split, cities=["Chicago"], splits_dir="splits__corrected")
     assert s.queries == [root / "Chicago" / "panorama" / PANO] and s.query_tile_px.tolist() == [[341.0, 350.0]]
     assert s.references[0] == root / "Chicago" / "satellite" / SATS[0]
+    assert vigor_split(root, setting, split, cities=["Chicago"]).tile_labels == "vigor_corrected"  # the default
     with pytest.raises(FileNotFoundError, match="city 'Chicago'"):  # the original labels are elsewhere
-        vigor_split(root, setting, split, cities=["Chicago"])
+        vigor_split(root, setting, split, cities=["Chicago"], splits_dir="splits")
 
 
 def test_slicematch_folder_through_the_registered_reader(tmp_path):

@@ -98,8 +98,9 @@ def test_another_splits_folder(released):
     (root / "splits").rename(root / "splits__corrected")
     s = vigor_split(root, "same_area", "test", splits_dir="splits__corrected")
     assert s.num_queries == 8 and s.references[0].parent == root / "Chicago" / "satellite"
+    assert vigor_split(root, "same_area", "test").num_queries == 8  # splits_dir=null finds it
     with pytest.raises(FileNotFoundError, match="cities found there: \\[\\]"):
-        vigor_split(root, "same_area", "test")
+        vigor_split(root, "same_area", "test", splits_dir="splits")
 
 
 def _break(root: Path, file: str, text: str):

@@ -71,7 +71,8 @@ def write_places(folder: Path, split: RetrievalSplit, rows=None) -> dict:
     for name, lines in (("references.jsonl", refs), ("queries.jsonl", queries)):
         # into the save's temporary folder (gallery_folder.py)
         (folder / name).write_text("".join(line + "\n" for line in lines))
-    return {**split_record(split), "positions": kind, "query_view": split.query_view}
+    # tile_labels: the label set behind the queries' truth in their tiles (RetrievalSplit.tile_labels), or None
+    return {**split_record(split), "positions": kind, "query_view": split.query_view, "tile_labels": split.tile_labels}
 
 
 @dataclass

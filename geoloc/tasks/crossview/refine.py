@@ -29,6 +29,7 @@ from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, 
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
 
 STAGES = ("refine", "joint")
+METRE_LABELS = "metre_labels"  # the metrics' key that names the label set behind their metres (tile_labels)
 RADIUS_M = 5.0  # the refined answer's confidence is P(error <= RADIUS_M) (confidence.py's "within_5m")
 
 
@@ -191,7 +192,7 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
     positives = torch.from_numpy(split.positives)
     position, heading, _ = refined(refiner, query_maps, reference_maps, positives, candidates)
     if FINE_KEYS in plan:
-        out.update(fine_summary(positive_errors_m(position.numpy(), split)))
+        out.update(fine_summary(positive_errors_m(position.numpy(), split)), **labels_of(split))
     if FINE_HEADING_KEYS in plan:
         out.update(heading_summary(circular_error_deg(heading.numpy(), true_heading.cpu().numpy())))
     if E2E_KEYS in plan:
@@ -199,6 +200,11 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
         e2e_position, _, _ = refined(refiner, query_maps, reference_maps, top1, candidates)
         out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), top1.numpy(), split)))
     return out
+
+
+def labels_of(split: RetrievalSplit) -> dict[str, str]:
+    """{METRE_LABELS: the label set the split's truth positions come from}, reported beside every fine metre."""
+    return {METRE_LABELS: split.tile_labels or "unknown"}
 
 
 def fine_answers(refiner, split: RetrievalSplit, candidates: torch.Tensor, query_maps: torch.Tensor,

@@ -19,7 +19,7 @@ from geoloc.eval.fine_error import fine_summary
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, calibrators, confidence_report, fit_within,
                                                refine_features)
 from geoloc.tasks.crossview.datasets import holdout_rule
-from geoloc.tasks.crossview.refine import RADIUS_M, fine_answers
+from geoloc.tasks.crossview.refine import RADIUS_M, fine_answers, labels_of
 
 NO_SCALE = "the split's tiles have no metres per pixel, so the refiner's error has no metres to calibrate"
 
@@ -58,7 +58,7 @@ def scored_within(record: dict | None, task, split, maps: dict, run_dir: Path | 
     if answers is None:
         return {}
     mass, error = answers
-    out = fine_summary(error)
+    out = {**fine_summary(error), **labels_of(split)}
     calibrator = calibrators(record).get(WITHIN_5M)
     if calibrator is not None:
         figure = Path(run_dir) / f"confidence_{WITHIN_5M}.png" if run_dir is not None and dist.is_main() else None

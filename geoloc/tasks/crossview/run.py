@@ -7,6 +7,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from geoloc.config import ConfigError, checked
+from geoloc.data.retrieval_split import TILE_LABELS
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
@@ -17,6 +18,7 @@ from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, Cros
 from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, calibration_data, known_heading
 from geoloc.tasks.crossview.gallery_folder import check_target
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state
+from geoloc.tasks.crossview.refine import METRE_LABELS
 from geoloc.tasks.crossview.task import CrossViewTask
 
 # what an init_from= run does not take from its source: the loss's state (the GMS queue holds the source data's
@@ -138,12 +140,15 @@ def _max_epochs(stored: DictConfig) -> int:
 
 
 def print_table(metrics: dict, title: str) -> None:
-    """Recall in %, the other metrics as they are."""
+    """Recall in %, the other metrics as they are; then the label set behind the metres, where there are any."""
     keys = [k for k in metrics if isinstance(metrics[k], float) and k != "reference_spread"]
     print(f"\n{title}")
     print("| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))
     print("| " + " | ".join(_fmt(k, metrics[k]) for k in keys) + " |")
+    if METRE_LABELS in metrics:
+        labels = metrics[METRE_LABELS]
+        print(f"fine_* metres against {labels}: {TILE_LABELS.get(labels, 'a label set geoloc does not know')}")
 
 
 def _fmt(key: str, value: float) -> str:

@@ -69,6 +69,7 @@ def test_refinement_stage_from_a_retrieval_checkpoint(vigor_root, tmp_path):
         assert written == pytest.approx(metrics)
         for key in (*FINE, *E2E):
             assert key in written and written[key] >= 0, key
+        assert written["metre_labels"] == "synthetic"  # the renderer's exact truth, whatever the files are named
     assert json.loads((tmp_path / "splits.json").read_text()) == pytest.approx(
         json.loads((tmp_path / "splits__corrected.json").read_text()))  # the same labels under the other names
 

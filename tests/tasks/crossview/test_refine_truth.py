@@ -84,3 +84,31 @@ def test_summaries_against_brute_force():
     assert heading_summary([0.0, 10.0, 170.0])["fine_heading_median_deg"] == 10.0
     with pytest.raises(ValueError):
         fine_summary([1.0, float("nan")])
+
+
+class FixedHeading(torch.nn.Module):
+    """A stub refiner: every pair at its tile's centre, looking along 350°."""
+
+    heading_bins = 36
+
+    def match(self, query_maps, reference_maps, headings_deg):
+        from geoloc.models.refiners import Refinement
+
+        headings = torch.as_tensor(headings_deg, dtype=torch.float32)
+        logits = torch.full((query_maps.shape[0], headings.numel(), 3, 3), -50.0)
+        logits[:, int(torch.argmin(((headings - 350.0 + 180.0) % 360.0 - 180.0).abs())), 1, 1] = 0.0
+        return Refinement(torch.log_softmax(logits.flatten(1), 1).view_as(logits), headings)
+
+
+def test_the_refined_heading_error_wraps_around_north():
+    """350° found for a truth of 10° is 20° off, not 340°."""
+    from geoloc.tasks.crossview.refine import fine_metrics
+
+    split = vigor_like([[0.0, 0.0]])
+    refine = RefineConfig(orientation_noise_deg=180.0)
+    candidates = refine.candidates(FixedHeading.heading_bins)
+    maps = torch.zeros(1, 1, 2, 2)
+    out = fine_metrics(FixedHeading(), split, refine, candidates, maps, maps, torch.tensor([10.0]),
+                       torch.ones(1, 2) / 2 ** 0.5, torch.ones(1, 2) / 2 ** 0.5)
+    assert out["fine_heading_median_deg"] == pytest.approx(20.0)
+    assert out["fine_median_m"] == pytest.approx(0.0, abs=1e-6)

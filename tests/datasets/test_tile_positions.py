@@ -15,7 +15,8 @@ from geoloc.synthetic import MARKER, generate
 from conftest import write_cvusa
 from helpers.cvact_data import write_act_mat
 
-# DESIGN.md's real example line: the positive's centre is 23 px north and 29 px west of the panorama
+# the real example line of docs/conventions.md "VIGOR split lines": the positive's centre is 23 px north and 29 px
+# west of the panorama
 PANO = "L-1poX8YZAmBZVLMqBu-4w,41.877949,-87.689396,.jpg"
 SATS = ["satellite_41.877971796211014_-87.68943505304125.png", "satellite_41.877971796211014_-87.68899446364951.png",
         "satellite_41.87764359775486_-87.68943505304125.png", "satellite_41.87764359775486_-87.68899446364951.png"]

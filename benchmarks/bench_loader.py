@@ -10,7 +10,7 @@ the batched normalisation that now runs on the training device (timed here on th
 
 Cases (the dataset section each experiment composes):
 - paper: experiment=paper_cvusa (IPT 288x288, rotation 10, no jitter) on 750x750 aerial / 1232x224 panorama JPEGs:
-  the real CVUSA samples in ../shared/realdata/cvusa_mini when present (5 pairs, cycled), else synthetic ones;
+  the real CVUSA samples (REALDATA, beside the checkout) when present (5 pairs, cycled), else synthetic ones;
   (the 375 -> 288 resize of the half-scale aerial bilinear, dataset.resize_interpolation=linear as the real
   datasets' yaml set it); paper-area: the same with the area resize (INTER_AREA), as before;
 - default: `python train.py`'s dataset keys (IPT 64x64, flip/rotate, jitter 0.1, reduced_decode=false) on the

@@ -1,7 +1,8 @@
 """Polar transforms: cached cv2.remap grids against a direct, vectorised numpy evaluation of the same formula.
 
-The baseline evaluates the DESIGN.md formula for every output pixel and samples bilinearly with numpy fancy
-indexing (no Python loop), as a plain numpy implementation would on every call. The target is >= 20x.
+The baseline evaluates the formula of docs/conventions.md "Polar transform" for every output pixel and samples
+bilinearly with numpy fancy indexing (no Python loop), as a plain numpy implementation would on every call. The
+target is >= 20x.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_polar.py [--repeats 20] [--threads 1]
 """

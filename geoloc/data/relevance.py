@@ -1,4 +1,6 @@
-"""Which references are relevant to each query: the one definition every metric path ranks by (DESIGN.md).
+"""Which references are relevant to each query: the one definition every metric path ranks by.
+
+The rules: docs/conventions.md "Relevance" and "Ranks and Recall@K".
 
 Kinds (a `RetrievalSplit` says which applies to it: `RetrievalSplit.relevance`):
 - ``one_to_one``: query i matches reference i (CVUSA, CVACT);

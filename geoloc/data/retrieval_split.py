@@ -3,8 +3,8 @@
 The one-to-one datasets (CVUSA, CVACT) are the special case positives = arange(Q). VIGOR adds semi-positives
 (references that contain the query's location off centre) and GPS; University-1652 adds labels (every image of
 the query's building is relevant). Which references are relevant to a query is said here once, by
-`RetrievalSplit.relevance` (geoloc/data/relevance.py), and every metric path ranks by it (DESIGN.md "Relevance is
-a property of the split").
+`RetrievalSplit.relevance` (geoloc/data/relevance.py), and every metric path ranks by it (docs/conventions.md
+"Relevance").
 """
 from __future__ import annotations
 

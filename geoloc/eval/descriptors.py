@@ -2,10 +2,10 @@
 
 - Finite: a NaN compares false, so a NaN descriptor is never "strictly closer" than anything and its query would
   count as a hit. Non-finite rows raise, naming query or reference and how many rows.
-- Unit length: ranking is by inner product, which equals d = 2 - 2 a.b (DESIGN.md) only for L2-normalised rows.
-  Rows whose norm is off by more than ``UNIT_TOLERANCE`` are L2-normalised (cosine ranking); rows already unit
-  length are used exactly as given, so normalised descriptors give bit for bit the numbers they gave before.
-  An all-zero row has no direction and raises.
+- Unit length: ranking is by inner product, which equals d = 2 - 2 a.b (docs/conventions.md "Descriptors") only
+  for L2-normalised rows. Rows whose norm is off by more than ``UNIT_TOLERANCE`` are L2-normalised (cosine
+  ranking); rows already unit length are used exactly as given, so normalised descriptors give bit for bit the
+  numbers they gave before. An all-zero row has no direction and raises.
 - Not collapsed: ties count in the query's favour, so a network mapping every image to one point would score
   R@1 = 100%. When the reference spread (sum over dimensions of the standard deviation) is below
   ``COLLAPSE_SPREAD``, every metric reports its worst value with a warning (`geoloc.eval.keys.guarded`).

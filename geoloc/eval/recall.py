@@ -1,6 +1,6 @@
 """Recall@K for retrieval with one positive per query (SAFA, TransGeo, Sample4Geo), plus VIGOR's hit rate.
 
-Convention (repos disagree; this is the one DESIGN.md fixes):
+Convention (repos disagree; docs/conventions.md "Ranks and Recall@K" and "VIGOR hit rate" fix this one):
 - descriptors are L2-normalised and compared by d = 2 - 2 a.b, i.e. ranked by inner product. Rows that are not
   unit length are L2-normalised first (cosine ranking); non-finite or all-zero rows raise
   (geoloc.eval.descriptors), on every backend;

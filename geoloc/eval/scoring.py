@@ -4,8 +4,9 @@ Every number geoloc reports about a ranking comes from here: recall and R@1% (`r
 University-1652's AP (`average_precision.py`), the top-1 of the metre error, the heading search (each query as K
 candidate descriptors), the saved-gallery path, the figures, localize and MMDIP's fused ranking.
 
-Scores are inner products of unit rows (d = 2 - 2 a.b, DESIGN.md). A query may be Q x D, or Q x K x D: K candidate
-descriptors (headings) whose score against a reference is the best of the K, s_ij = max_k <q_ik, r_j>.
+Scores are inner products of unit rows (d = 2 - 2 a.b, docs/conventions.md "Descriptors"). A query may be Q x D,
+or Q x K x D: K candidate descriptors (headings) whose score against a reference is the best of the K,
+s_ij = max_k <q_ik, r_j>.
 
 **The rank rule.** With query i's relevant references R_i and ignored references I_i (`geoloc.data.relevance`),
 

@@ -2,7 +2,8 @@
 
 Li, Tu, Chen, Yu, "Multi-scale attention encoder for street-to-aerial image geo-localization" (CAAI TIT 2023):
 alpha 10 and a fixed-length queue of reference descriptors (0 = the "w/o GMS" row). The paper gives no length: the
-default 1,024 (the paper configs') is geoloc's choice. Formulas: geoloc/losses/triplet.py and gms_queue.py, DESIGN.md.
+default 1,024 (the paper configs') is geoloc's choice. Formulas: geoloc/losses/triplet.py and gms_queue.py;
+docs/conventions.md "Soft-margin triplet" and "GMS queue".
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Polar transforms (DESIGN.md): SAFA aerial -> polar and the paper's IPT street -> aerial-like."""
+"""Polar transforms (docs/conventions.md "Polar transform" and "IPT"): SAFA aerial -> polar and the paper's IPT
+street -> aerial-like."""
 import math
 
 import cv2
@@ -114,7 +115,7 @@ def test_ipt_wraps_columns_without_seam():
 
 
 def test_round_trip_reproduces_panorama():
-    """DESIGN.md: sampling the IPT output back along the same rays reproduces the panorama."""
+    """docs/conventions.md "IPT": sampling the IPT output back along the same rays reproduces the panorama."""
     h_s, w_s, h_a, w_a = 224, 1232, 288, 288
     rows, cols = np.mgrid[0:h_s, 0:w_s].astype(np.float64)
     pano = 128 + 60 * np.sin(2 * np.pi * 2 * cols / w_s) + 50 * np.cos(np.pi * rows / h_s)

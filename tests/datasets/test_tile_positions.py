@@ -15,8 +15,9 @@ from geoloc.synthetic import MARKER, generate
 from conftest import write_cvusa
 from helpers.cvact_data import write_act_mat
 
-# a released line (Chicago, SliceMatch's corrected test file): the positive's centre is 23 px north and 29 px west
-# of the panorama; its other semi-positives lie further off (tests/fixtures/released holds the real lines)
+# a released line (Chicago, SliceMatch's corrected test file; docs/conventions.md "VIGOR split lines"): the
+# positive's centre is 23 px north and 29 px west of the panorama; its other semi-positives lie further off
+# (tests/fixtures/released holds the real lines)
 PANO = "L-1poX8YZAmBZVLMqBu-4w,41.877949,-87.689396,.jpg"
 SATS = ["satellite_41.877971796211014_-87.68943505304125.png", "satellite_41.877971796211014_-87.68899446364951.png",
         "satellite_41.87764359775486_-87.68943505304125.png", "satellite_41.87764359775486_-87.68899446364951.png"]

@@ -11,8 +11,8 @@ from geoloc.datasets.vigor import CITIES, vigor_split
 from geoloc.synthetic import MARKER, generate
 from geoloc.synthetic.tiles import TileGrid
 
-# DESIGN.md's real example line (the panorama, its positive with offsets 23.0 -29.0, a semi-positive 20.0 300.0);
-# the remaining two semi-positives are made up in the same form.
+# the real example line of docs/conventions.md "VIGOR split lines" (the panorama, its positive with offsets
+# 23.0 -29.0, a semi-positive 20.0 300.0); the remaining two semi-positives are made up in the same form.
 EXAMPLE_PANO = "L-1poX8YZAmBZVLMqBu-4w,41.877949,-87.689396,.jpg"
 EXAMPLE_SATS = ["satellite_41.877971796211014_-87.68943505304125.png",
                 "satellite_41.877971796211014_-87.68899446364951.png",

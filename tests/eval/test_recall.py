@@ -1,4 +1,4 @@
-"""recall_at_k and GalleryIndex against brute force (DESIGN.md: Recall@K)."""
+"""recall_at_k and GalleryIndex against brute force (docs/conventions.md "Ranks and Recall@K")."""
 import numpy as np
 import pytest
 import torch

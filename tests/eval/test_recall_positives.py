@@ -1,4 +1,5 @@
-"""Recall with positives and semi-positives (DESIGN.md: retrieval with positives, VIGOR) against brute force."""
+"""Recall with positives and semi-positives (docs/conventions.md "Ranks and Recall@K", "VIGOR hit rate") against
+brute force."""
 import pytest
 import torch
 import torch.nn.functional as F

@@ -1,4 +1,4 @@
-"""GMSQueue: FIFO order, masking, hardest negatives, checkpoint round trip, size 0 (DESIGN.md: GMS queue)."""
+"""GMSQueue: FIFO order, masking, hardest negatives, checkpoint round trip, size 0 (docs/conventions.md "GMS queue")."""
 import io
 
 import pytest

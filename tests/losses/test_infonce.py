@@ -1,4 +1,4 @@
-"""info_nce against a brute-force loop (DESIGN.md: symmetric InfoNCE) and torch's own cross-entropy."""
+"""info_nce against a brute-force loop (docs/conventions.md "Symmetric InfoNCE") and torch's own cross-entropy."""
 import math
 
 import pytest

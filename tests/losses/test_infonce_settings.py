@@ -1,6 +1,6 @@
-"""InfoNCE's settings reach the formula: the default temperatures (0.1 for the function as in DESIGN.md, CLIP's
-0.07 for the module), the bounds on temperature and label smoothing, and the module passing labels and smoothing
-on to info_nce."""
+"""InfoNCE's settings reach the formula: the default temperatures (0.1 for the function, CLIP's 0.07 for the
+module: docs/conventions.md "Symmetric InfoNCE"), the bounds on temperature and label smoothing, and the module
+passing labels and smoothing on to info_nce."""
 import math
 
 import pytest

@@ -1,4 +1,4 @@
-"""soft_margin_triplet against a brute-force loop over triplets (DESIGN.md: weighted soft-margin triplet)."""
+"""soft_margin_triplet against a brute-force loop over triplets (docs/conventions.md "Soft-margin triplet")."""
 import math
 
 import pytest

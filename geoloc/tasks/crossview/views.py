@@ -1,7 +1,7 @@
 """Street views of unknown heading and limited field of view on the 360° canvas (DSM, Shi et al.,
 "Where am I looking at? Joint location and orientation estimation by cross-view matching", CVPR 2020).
 
-Bearings follow the panorama convention of DESIGN.md: column j of a W-wide north-aligned panorama looks along
+Bearings follow docs/conventions.md "Panorama bearings": column j of a W-wide north-aligned panorama looks along
 bearing 180° + 360°·j/W (south at column 0, north at the centre column, clockwise seen from above). A view of
 heading h (the bearing of its centre column) and field of view f, W' columns wide, shows the bearings
 [h - f/2, h + f/2): its column i looks along h - f/2 + f·i/W'. A 360° view of heading 0 is the north-aligned

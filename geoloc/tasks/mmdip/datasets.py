@@ -1,6 +1,7 @@
 """Dynamic-scene datasets (MMDIP): the synthetic `dynamic` layout, the authors' 4-panel CARLA PNGs and the
-Empty Cities 3-panel images. Formats: docs/dynamic_layout.md and ../shared/DESIGN.md. The registered readers that
-task=mmdip builds by `dataset.name` (readers.py) hand these out, with their place protocols and class fractions.
+Empty Cities 3-panel images. Formats: docs/dynamic_layout.md and docs/conventions.md "Dynamic-scene data". The
+registered readers that task=mmdip builds by `dataset.name` (readers.py) hand these out, with their place protocols
+and class fractions.
 
 Every reader returns dicts of tensors: `dynamic` and `static` (3 x H x W float in [0, 1]), `mask` (1 x H x W,
 1 where a dynamic object is seen), `index`, and where the format has them `label` (H x W int64 static classes
@@ -31,7 +32,8 @@ log = logging.getLogger(__name__)
 NUM_CLASSES = 8
 SPLIT_COLUMNS = ("sample", "place", "role")  # what the reader takes of a splits/<split>.csv row
 STATIC_CLASSES = ("None", "Buildings", "Fences", "Others", "Roadlines", "Road", "Sidewalk", "Vegetation")
-# CARLA 0.8 tag -> the paper's 8 classes (DESIGN.md); 4 (pedestrian) and 10 (vehicle) are the dynamic tags.
+# CARLA 0.8 tag -> the paper's 8 classes; 4 (pedestrian) and 10 (vehicle) are the dynamic tags
+# (docs/conventions.md "Dynamic-scene data").
 CARLA_TO_STATIC = {0: 0, 1: 1, 2: 2, 3: 3, 4: 3, 5: 3, 10: 3, 11: 3, 12: 3, 6: 4, 7: 5, 8: 6, 9: 7}
 CARLA_DYNAMIC_TAGS = (4, 10)
 _CARLA_LUT = np.array([CARLA_TO_STATIC[t] for t in range(13)], np.uint8)

@@ -1,6 +1,6 @@
-"""The cross-view task's training loss is DESIGN.md's formula, written out by hand: the configured alpha, the GMS
-queue filled after the loss with each query's hardest in-batch negative, queue entries of the query's own location
-left out, and no queue before loss.queue_start_epoch."""
+"""The cross-view task's training loss is the formula of docs/conventions.md "Soft-margin triplet" and "GMS queue",
+written out by hand: the configured alpha, the GMS queue filled after the loss with each query's hardest in-batch
+negative, queue entries of the query's own location left out, and no queue before loss.queue_start_epoch."""
 from types import SimpleNamespace
 
 import torch

@@ -1,8 +1,9 @@
-"""Every path that reports a number about a split gives the same numbers (DESIGN.md: relevance is a property of
-the split, defined once): training's validation, evaluate.py (exact), evaluate.py with a saved gallery (torch and
-FAISS flat, saved then loaded; an approximate FAISS kind for everything but AP), `recall_at_k(backend="faiss")`,
-the recall-curve data of the figures, and localize's top-k. On a one-to-one split, a VIGOR-like split, and a
-University-1652-like split in both directions (satellite -> drone has several relevant drone images per query).
+"""Every path that reports a number about a split gives the same numbers (docs/conventions.md "Relevance": it is
+a property of the split, defined once): training's validation, evaluate.py (exact), evaluate.py with a saved
+gallery (torch and FAISS flat, saved then loaded; an approximate FAISS kind for everything but AP),
+`recall_at_k(backend="faiss")`, the recall-curve data of the figures, and localize's top-k. On a one-to-one split,
+a VIGOR-like split, and a University-1652-like split in both directions (satellite -> drone has several relevant
+drone images per query).
 
 The networks are a two-convolution backbone registered here (a tiny VGG's descriptors of these tiny images are all
 but collapsed) and a global-pooling head, trained one epoch: seconds, and descriptors with a healthy spread.

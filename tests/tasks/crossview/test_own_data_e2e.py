@@ -1,6 +1,6 @@
 """Your own data end to end (dataset=folder): fine-tune on the training area, evaluate, save a gallery, load it,
 localize one image with localize.py and through the service; and the worked example of docs/datasets.md, built
-from ../shared/realdata."""
+from the real CVUSA samples (REALDATA) when they are present."""
 
 from __future__ import annotations
 

@@ -33,7 +33,7 @@ def vigor_like(offsets_px, scale=0.111262):
     at their true lat/lon (the tile centre minus the offset, in metres)."""
     centre = np.array([41.87, -87.68])
     offsets = np.asarray(offsets_px, np.float64)
-    px = np.column_stack([320 + offsets[:, 0], 320 - offsets[:, 1]])  # DESIGN.md: (H/2 + d_row, W/2 - d_col)
+    px = np.column_stack([320 + offsets[:, 0], 320 - offsets[:, 1]])  # docs/conventions.md "VIGOR split lines"
     from geoloc.data.geo import offset_to_latlon
 
     latlon = np.stack([offset_to_latlon(centre, -e * scale, -n * scale) for n, e in offsets])

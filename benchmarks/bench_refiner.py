@@ -2,8 +2,11 @@
 on one thread, at the refiner's input sides and with a known heading (1 bin) or an unknown one (12 or 36 bins).
 
     OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128 256] [--bins 1 12 36] [--tiles 5] [--repeats 20]
+        [--overlap mean|window] [--query-scale 1.13]
 
-Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once)."""
+Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once).
+--query-scale S matches with the ground scale as an input (the query's map drawn S times larger for every tile, as
+refiner.query_extent_m does for tiles of one extent); 0 (the default) without it."""
 
 from __future__ import annotations
 
@@ -36,12 +39,16 @@ def main() -> None:
     parser.add_argument("--bins", type=int, nargs="+", default=[1, 12, 36], help="heading bins (1: known heading)")
     parser.add_argument("--widths", type=int, nargs="+", default=[16, 32],
                         help="refiner.width = refiner.channels (16: the default, 32: the refine_vigor recipe)")
+    parser.add_argument("--overlap", default="mean", choices=["mean", "window"])
+    parser.add_argument("--query-scale", type=float, default=0.0)
     args = parser.parse_args()
+    scale = torch.full((args.tiles,), args.query_scale) if args.query_scale else None
     torch.set_num_threads(args.threads)
     print(f"| width | side | headings | query + {args.tiles} tiles (ms) | {args.tiles} tiles encoded (ms) | match (ms) |")
     print("|---|---|---|---|---|---|")
     for width, side in ((w, s) for w in args.widths for s in args.sides):
-        refiner = registry.build("refiner", {"name": "correlation", "width": width, "channels": width}).eval()
+        refiner = registry.build("refiner", {"name": "correlation", "width": width, "channels": width,
+                                             "overlap": args.overlap}).eval()
         query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
         for bins in args.bins:
             headings = torch.arange(bins) * (360.0 / bins)
@@ -49,13 +56,13 @@ def main() -> None:
             @torch.no_grad()
             def whole():
                 maps = refiner.encode_query(query)
-                refiner.match(maps.expand(args.tiles, -1, -1, -1), refiner.encode_reference(tiles), headings)
+                refiner.match(maps.expand(args.tiles, -1, -1, -1), refiner.encode_reference(tiles), headings, scale)
 
             with torch.no_grad():
                 encoded = refiner.encode_reference(tiles)
                 maps = refiner.encode_query(query).expand(args.tiles, -1, -1, -1)
                 tile_ms = median_ms(lambda: refiner.encode_reference(tiles), args.repeats)
-                match_ms = median_ms(lambda: refiner.match(maps, encoded, headings), args.repeats)
+                match_ms = median_ms(lambda: refiner.match(maps, encoded, headings, scale), args.repeats)
             print(f"| {width} | {side} | {bins} | {median_ms(whole, args.repeats):.1f} | {tile_ms:.1f} | "
                   f"{match_ms:.1f} |", flush=True)
 

@@ -13,7 +13,7 @@ column 320 - f2 (CCVPE's datasets.py). They give each query's position in its ti
 query_semi_tile_px), with the per-city metres per pixel of CCVPE's train_VIGOR.py (METRES_PER_PX); metre
 distances between places come from the lat/lon in the file names.
 
-Two label sets give the offsets (docs/conventions.md "VIGOR offsets and metres"):
+Two label sets give the offsets (docs/conventions.md "VIGOR tile scale and label sets"):
 - `vigor_corrected`: SliceMatch's re-computed labels, in `splits__corrected/<City>/`, files named
   `same_area_balanced_{train,test}__corrected.txt` and `pano_label_balanced__corrected.txt` beside
   `satellite_list.txt`: pixels at each city's true scale, read as released. Some semi-positive offsets lie

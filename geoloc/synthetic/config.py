@@ -142,6 +142,13 @@ PRESETS = {
     # first): the calibration's ECE needs >= 2,000 test queries (docs/confidence.md)
     "vigor_small_2k": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
                            world_margin=2.0, cities=4, grid=8, train=64, val=512),
+    # vigor_small with tiles at each real VIGOR city's ground extent (640 px times CCVPE's metres per pixel):
+    # Seattle 64.52 m, Chicago 71.21, New York 72.48, San Francisco 75.61, against vigor_small's 72.96. The world
+    # cell is set so that a tile is a whole number of cells (a multiple of 4) within 1% of vigor_small's 0.38 m
+    **{f"vigor_small_{city}_scale": dict(aerial_size=256, sphere_height=256, sphere_width=512, tile_m=extent,
+                                         cell_m=extent / cells, world_margin=2.0, cities=4, grid=8, train=64, val=32)
+       for city, extent, cells in (("seattle", 64.52, 168), ("chicago", 71.21, 188), ("newyork", 72.48, 192),
+                                   ("sanfrancisco", 75.61, 200))},
     # the CPU recipes' larger worlds (conf/experiment/vigor_cpu.yaml, u1652_cpu.yaml): the small presets' image
     # sizes and test sets, six / eight times the training places (the small ones over-fit within a few epochs)
     "vigor_medium": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,

@@ -72,6 +72,88 @@ def test_one_query_expanded_over_its_tiles_scores_as_the_copied_query():
     assert (bins[k].item(), divmod(position, 33)) == (70.0, (14, 18))
 
 
+def brute_correlate(query, reference, headings, kernel, overlap):
+    """correlate's definition, cell by cell: the rotated query's central window laid with its centre on every cell
+    corner of the reference map, the dot products summed over the window cells on the map, divided by how many
+    lie on it ("mean") or by the whole window ("window")."""
+    b, c, n, _ = query.shape
+    rotated = rotate_maps(query, headings)
+    start, half = (n - kernel) // 2, kernel // 2
+    out = torch.zeros(b, headings.numel(), n + 1, n + 1, dtype=torch.float64)
+    for bi in range(b):
+        for k in range(headings.numel()):
+            window = rotated[bi, k, :, start:start + kernel, start:start + kernel].double()
+            for i in range(n + 1):
+                for j in range(n + 1):
+                    total, cells = 0.0, 0
+                    for a in range(kernel):
+                        for d in range(kernel):
+                            r, q = i - half + a, j - half + d
+                            if 0 <= r < n and 0 <= q < n:
+                                total += float(window[:, a, d] @ reference[bi, :, r, q].double())
+                                cells += 1
+                    out[bi, k, i, j] = total / (cells if overlap == "mean" else kernel * kernel)
+    return out
+
+
+@pytest.mark.parametrize("overlap", ["mean", "window"])
+def test_correlate_is_its_brute_force_definition(overlap):
+    query, reference = torch.cat([smooth_maps(3, 8, 1), smooth_maps(3, 8, 2)]), torch.cat(
+        [smooth_maps(3, 8, 3), smooth_maps(3, 8, 4)])
+    headings = torch.tensor([0.0, 30.0])
+    found = correlate(query, reference, headings, kernel=4, overlap=overlap)
+    assert torch.allclose(found.double(), brute_correlate(query, reference, headings, 4, overlap), atol=1e-5)
+
+
+def test_a_camera_at_the_edge_scores_as_a_camera_at_the_centre():
+    """Unit features, the query exactly the tile around the camera: the mean cosine on the tile is 1 wherever the
+    camera stands; dividing by the whole window scored it 0.39 two cells from the corner."""
+    tile = F.normalize(smooth_maps(8, 32, seed=7), dim=1)
+    for row, col in ((16, 16), (2, 30)):
+        query = query_at(tile, row, col)
+        mean = correlate(query, tile, torch.zeros(1), kernel=16)[0, 0, row, col]
+        window = correlate(query, tile, torch.zeros(1), kernel=16, overlap="window")[0, 0, row, col]
+        assert mean == pytest.approx(1.0, abs=1e-4)
+        assert window == pytest.approx(1.0 if row == 16 else (10 * 10) / (16 * 16), abs=1e-4)
+
+
+def test_query_scale_draws_the_query_larger_about_its_centre():
+    """A map whose value is each cell's column from the centre, drawn twice as large, reads half of it: the
+    output cell q samples the input at q / 2."""
+    n = 16
+    ramp = (torch.arange(n) + 0.5 - n / 2).float().expand(n, n)[None, None]
+    zoomed = rotate_maps(ramp, torch.zeros(1), torch.tensor([2.0]))[0, 0, 0]
+    assert torch.allclose(zoomed[:, 4:12], ramp[0, 0, :, 4:12] / 2, atol=1e-5)
+    # per tile: each pair drawn at its own scale, as the separate copies would be
+    tiles = torch.cat([smooth_maps(4, 16, seed=s) for s in range(3)])
+    query = smooth_maps(4, 16, seed=9).expand(3, -1, -1, -1)
+    scales = torch.tensor([1.0, 1.13, 0.95])
+    together = correlate(query, tiles, torch.tensor([0.0, 90.0]), kernel=8, query_scale=scales)
+    for i in range(3):
+        alone = correlate(query[:1].contiguous(), tiles[i:i + 1], torch.tensor([0.0, 90.0]), kernel=8,
+                          query_scale=scales[i:i + 1])
+        assert torch.allclose(together[i:i + 1], alone, atol=1e-5)
+    assert not torch.allclose(together[1], correlate(query[:1].contiguous(), tiles[1:2], torch.tensor([0.0, 90.0]),
+                                                      kernel=8)[0], atol=1e-3)
+
+
+@pytest.mark.parametrize("zoom", [1.3, 0.77])
+def test_a_tile_of_another_ground_extent_is_matched_at_the_querys_scale(zoom):
+    """A tile covering 1 / zoom of the ground the query's frame stands for shows everything zoom times larger: the
+    query's map drawn zoom times larger is found where the camera is in that tile, and matches better there than
+    drawn as it is or the other way."""
+    ground = smooth_maps(8, 32, seed=11)
+    tile = rotate_maps(ground, torch.zeros(1), torch.tensor([zoom]))[:, 0]  # the same ground, another extent
+    for row, col in ((13, 19), (22, 9)):  # the camera, in the query's frame
+        query = query_at(ground, row, col)
+        peak = {s: correlate(query, tile, torch.zeros(1), kernel=16, query_scale=torch.tensor([s]))
+                for s in (zoom, 1.0, 1.0 / zoom)}
+        found = divmod(int(peak[zoom].flatten().argmax()), 33)
+        expect = (16 + zoom * (row - 16), 16 + zoom * (col - 16))
+        assert abs(found[0] - expect[0]) <= 0.5 and abs(found[1] - expect[1]) <= 0.5
+        assert peak[zoom].max() > peak[1.0].max() > peak[1.0 / zoom].max()
+
+
 def test_rotate_maps_turns_clockwise():
     """A mark above the centre (north) turned by 90 degrees lands right of it (east)."""
     maps = torch.zeros(1, 1, 9, 9)

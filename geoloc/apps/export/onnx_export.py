@@ -135,9 +135,14 @@ def export_refiner(encoder: CrossViewEncoder, tmp: Path, opset: int | None) -> d
              "orientation_noise_deg": encoder.refine_config.orientation_noise_deg,
              "heading_bins": getattr(encoder.refiner, "heading_bins", None),
              "matching": ("log P(heading k, position) = log_softmax over (k, position) of scale x the mean dot product "
-                          "of the query map's central window, turned clockwise by heading k, with the tile map, "
-                          "the window's centre on each cell corner of the tile map; geoloc.models.refiners."
-                          "correlation.correlate, and Refinement (refinement.py) for the estimates read from it"),
+                          "of the query map's central window, turned clockwise by heading k (and drawn "
+                          "query_extent_m / tile extent times larger about its centre where query_extent_m > 0), "
+                          "with the tile map, the window's centre on each cell corner of the tile map, the mean "
+                          "taken over the window's cells on the tile (overlap 'mean') or the whole window "
+                          "('window'); geoloc.models.refiners.correlation.correlate, and Refinement "
+                          "(refinement.py) for the estimates read from it"),
+             "overlap": getattr(encoder.refiner, "overlap", None),
+             "query_extent_m": encoder.refine_config.query_extent_m,
              "scale": float(encoder.refiner.log_scale.detach().exp()) if hasattr(encoder.refiner, "log_scale") else None}
     for name, file in REFINER_FILES.items():
         module = _Encode(encoder.refiner, name).eval()

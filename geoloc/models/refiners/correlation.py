@@ -8,10 +8,17 @@ CCVPE (Xia et al., "Convolutional Cross-View Pose Estimation", TPAMI 2023) the a
 position (and heading bin), trained by the likelihood of the truth; the matching here is a plain correlation of
 small learnt feature maps, so it trains on a CPU in minutes.
 
-    query S x S -> encoder -> C x n x n (n = S / 2), L2-normalised per position; rotated by each heading bin;
-    its central k x k window (k = kernel_frac * n) slides over the tile's C x n x n map (zero padded; by FFT):
-    score(heading, position) = scale * mean cosine over the window, at the (n + 1) x (n + 1) lattice of cell
-    corners (the query's camera sits at its map's centre, a cell corner), log-softmax over heading x position.
+    query S x S -> encoder -> C x n x n (n = S / 2), L2-normalised per position; rotated by each heading bin
+    (and drawn `query_scale` times larger where the tile's ground scale differs from the query's);
+    its central k x k window (k = kernel_frac * n) slides over the tile's C x n x n map (by FFT):
+    score(heading, position) = scale * mean cosine over the window cells that lie on the tile, at the
+    (n + 1) x (n + 1) lattice of cell corners (the query's camera sits at its map's centre, a cell corner),
+    log-softmax over heading x position.
+
+Near the tile's edge part of the window lies off the tile. `overlap="mean"` (the default) averages over the cells
+on the tile, so a camera near the edge is scored on the same footing as one at the centre; `overlap="window"`
+divides by the whole window, which scores the edge lower the further the window leaves the tile (the first
+refiners were trained so; their checkpoints keep it).
 """
 
 from __future__ import annotations
@@ -38,37 +45,61 @@ def encoder(width: int, channels: int) -> nn.Sequential:
                          nn.Conv2d(2 * width, channels, 1))
 
 
-def rotate_maps(maps: torch.Tensor, headings_deg: torch.Tensor) -> torch.Tensor:
+OVERLAP = ("mean", "window")
+
+
+def rotate_maps(maps: torch.Tensor, headings_deg: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
     """B x C x n x n -> B x K x C x n x n: each map turned clockwise (as seen north up) by each heading, about its
-    centre, bilinearly, zeros outside. A view of heading h shows bearing h at the top of its IPT image; turning it
-    clockwise by h puts north back at the top."""
+    centre, bilinearly, zeros outside; with `scale` ((B,) factors), map b is also drawn scale[b] times larger
+    about its centre. A view of heading h shows bearing h at the top of its IPT image; turning it clockwise by h
+    puts north back at the top."""
     b, c, h, w = maps.shape
     k = headings_deg.numel()
     theta = torch.deg2rad(headings_deg.to(maps.dtype).to(maps.device))
     cos, sin = torch.cos(theta), torch.sin(theta)
     zero = torch.zeros_like(cos)
-    # output point q samples the input at R(-theta) q (affine_grid maps output to input coordinates)
+    # output point q samples the input at R(-theta) q / scale (affine_grid maps output to input coordinates)
     affine = torch.stack([torch.stack([cos, sin, zero], -1), torch.stack([-sin, cos, zero], -1)], 1)  # K x 2 x 3
-    grid = F.affine_grid(affine, (k, c, h, w), align_corners=False)  # K x n x n x 2
+    affine = affine[None].expand(b, k, 2, 3)
+    if scale is not None:
+        shrink = 1.0 / scale.to(maps.dtype).to(maps.device).reshape(b, 1, 1, 1)
+        affine = affine * torch.cat([shrink.expand(b, 1, 2, 2), torch.ones_like(shrink).expand(b, 1, 2, 1)], -1)
+    grid = F.affine_grid(affine.reshape(b * k, 2, 3), (b * k, c, h, w), align_corners=False)  # BK x n x n x 2
     repeated = maps[:, None].expand(b, k, c, h, w).reshape(b * k, c, h, w)
-    out = F.grid_sample(repeated, grid.repeat(b, 1, 1, 1), mode="bilinear", padding_mode="zeros",
-                        align_corners=False)
+    out = F.grid_sample(repeated, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     return out.reshape(b, k, c, h, w)
 
 
+def window_cells(n: int, kernel: int, device=None) -> torch.Tensor:
+    """(n + 1) x (n + 1): how many cells of a kernel x kernel window centred on each cell corner of an n x n map
+    lie on the map (kernel^2 where the window lies wholly on it)."""
+    corner = torch.arange(n + 1, device=device)
+    along = (torch.clamp(corner + kernel // 2, max=n) - torch.clamp(corner - kernel // 2, min=0)).float()
+    return along[:, None] * along[None, :]
+
+
 def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg: torch.Tensor,
-              kernel: int) -> torch.Tensor:
+              kernel: int, query_scale: torch.Tensor | None = None, overlap: str = "mean") -> torch.Tensor:
     """query_maps, reference_maps: B x C x n x n (n even); -> B x K x (n+1) x (n+1) mean dot products of the
-    query's central kernel x kernel window (kernel even), rotated by each heading, with the reference map, the
-    query's centre laid on each cell corner (i, j) of the reference map. One query against B tiles, given as its
-    map expanded to B (stride 0 along the batch, as an app's top-k refinement passes it), is rotated and transformed
-    once instead of B times."""
+    query's central kernel x kernel window (kernel even), rotated by each heading (and drawn query_scale[b] times
+    larger), with the reference map, the query's centre laid on each cell corner (i, j) of the reference map: the
+    mean over the window's cells on the map (overlap="mean") or over the whole window ("window"). One query against
+    B tiles, given as its map expanded to B (stride 0 along the batch, as an app's top-k refinement passes it), is
+    rotated and transformed once instead of B times where the tiles share one scale."""
     b, c, n, _ = query_maps.shape
     if reference_maps.shape != query_maps.shape or n % 2 or kernel % 2 or not 2 <= kernel <= n:
         raise ValueError(f"correlate takes two B x C x n x n maps (n even) and an even kernel <= n; got "
                          f"{tuple(query_maps.shape)}, {tuple(reference_maps.shape)}, kernel {kernel}")
-    shared = b > 1 and query_maps.stride(0) == 0  # the same query map for every tile
-    rotated = rotate_maps(query_maps[:1] if shared else query_maps, headings_deg)
+    if overlap not in OVERLAP:
+        raise ValueError(f"correlate: overlap must be one of {OVERLAP}, got {overlap!r}")
+    if query_scale is not None:
+        query_scale = torch.as_tensor(query_scale, dtype=torch.float32).reshape(-1)
+        if query_scale.numel() != b or not bool((query_scale > 0).all()) or not bool(query_scale.isfinite().all()):
+            raise ValueError(f"correlate: query_scale must hold {b} positive factors, got {query_scale.tolist()}")
+    one_scale = query_scale is None or bool((query_scale == query_scale[0]).all())
+    shared = b > 1 and query_maps.stride(0) == 0 and one_scale  # the same query map for every tile, at one scale
+    rotated = rotate_maps(query_maps[:1] if shared else query_maps, headings_deg,
+                          None if query_scale is None else query_scale[:1] if shared else query_scale)
     start = (n - kernel) // 2
     window = rotated[..., start:start + kernel, start:start + kernel]  # B (or 1) x K x C x kernel x kernel
     # a correlation is a convolution with the flipped window: by FFT, several times faster than a grouped conv2d
@@ -81,20 +112,23 @@ def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_d
     full = torch.fft.irfft2(product, s=size)
     # output corner o: the window's centre on the reference map's cell corner o (full index o + kernel/2 - 1)
     first = kernel // 2 - 1
-    return full[..., first:first + n + 1, first:first + n + 1] / (kernel * kernel)
+    cells = window_cells(n, kernel, full.device) if overlap == "mean" else kernel * kernel
+    return full[..., first:first + n + 1, first:first + n + 1] / cells
 
 
 class CorrelationRefiner(nn.Module):
     """Two unshared small encoders (query: the aligned street image, reference: the tile) and a correlation."""
 
     def __init__(self, channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
-                 scale: float = 20.0):
+                 scale: float = 20.0, overlap: str = "mean"):
         super().__init__()
         if channels < 1 or width < 1 or heading_bins < 1 or not 0.0 < kernel_frac <= 1.0 or scale <= 0:
             raise ValueError(f"refiner correlation: channels, width, heading_bins must be >= 1, kernel_frac in (0, 1] "
                              f"and scale > 0; got channels={channels}, width={width}, heading_bins={heading_bins}, "
                              f"kernel_frac={kernel_frac}, scale={scale}")
-        self.kernel_frac, self.heading_bins = kernel_frac, heading_bins
+        if overlap not in OVERLAP:
+            raise ValueError(f"refiner correlation: overlap must be one of {OVERLAP}, got {overlap!r}")
+        self.kernel_frac, self.heading_bins, self.overlap = kernel_frac, heading_bins, overlap
         self.query_encoder = encoder(width, channels)
         self.reference_encoder = encoder(width, channels)
         self.log_scale = nn.Parameter(torch.tensor(math.log(scale)))
@@ -107,23 +141,27 @@ class CorrelationRefiner(nn.Module):
         """B x 3 x S x S tiles -> B x C x S/2 x S/2, unit length per position."""
         return F.normalize(self.reference_encoder(images), dim=1)
 
-    def match(self, query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg) -> Refinement:
+    def match(self, query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg,
+              query_scale: torch.Tensor | None = None) -> Refinement:
         headings = torch.as_tensor(headings_deg, dtype=torch.float32, device=query_maps.device).reshape(-1)
         n = query_maps.shape[-1]
         kernel = max(2, 2 * round(self.kernel_frac * n / 2))
-        scores = correlate(query_maps, reference_maps, headings, kernel) * self.log_scale.exp()
+        scores = correlate(query_maps, reference_maps, headings, kernel, query_scale, self.overlap)
+        scores = scores * self.log_scale.exp()
         b = scores.shape[0]
         log_prob = F.log_softmax(scores.reshape(b, -1), dim=1).reshape(scores.shape)
         return Refinement(log_prob, headings)
 
-    def forward(self, query: torch.Tensor, reference: torch.Tensor, headings_deg) -> Refinement:
-        return self.match(self.encode_query(query), self.encode_reference(reference), headings_deg)
+    def forward(self, query: torch.Tensor, reference: torch.Tensor, headings_deg,
+                query_scale: torch.Tensor | None = None) -> Refinement:
+        return self.match(self.encode_query(query), self.encode_reference(reference), headings_deg, query_scale)
 
 
 @register("refiner", "correlation")
 def correlation(channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
-                scale: float = 20.0) -> CorrelationRefiner:
+                scale: float = 20.0, overlap: str = "mean") -> CorrelationRefiner:
     """channels: matched feature channels; width: the encoders' first width; kernel_frac: the share of the query
     map's side that is matched; heading_bins: candidate headings 360 k / K when the heading is unknown; scale: the
-    initial logit scale of a mean cosine (learnt)."""
-    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale)
+    initial logit scale of a mean cosine (learnt); overlap: mean over the window's cells on the tile, or over the
+    whole window (module docstring)."""
+    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale, overlap)

@@ -28,7 +28,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
-from geoloc.tasks.crossview.refine import offset_m
+from geoloc.tasks.crossview.refine import match, offset_m
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
 from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
 from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov, view_canvas
@@ -170,7 +170,8 @@ class CrossViewEncoder:
         maps = self.refiner.encode_query(query.to(self.device))
         references = self.refiner.encode_reference(tiles.to(self.device))
         candidates = self.refine_config.candidates(getattr(self.refiner, "heading_bins", 36))
-        out = self.refiner.match(maps.expand(len(references), *maps.shape[1:]), references, candidates)
+        out = match(self.refiner, self.refine_config, maps.expand(len(references), *maps.shape[1:]), references,
+                    candidates, np.asarray(extent_m, np.float64).reshape(-1, 2))
         east_north = offset_m(out.position().cpu().double().numpy(), np.asarray(extent_m, np.float64).reshape(-1, 2))
         turn = out.heading().cpu().numpy() if self.refine_config.orientation_noise_deg > 0 else np.zeros(len(tiles))
         return {"offset_m": east_north, "heading_offset_deg": turn,

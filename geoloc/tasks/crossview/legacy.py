@@ -5,6 +5,9 @@ format 1  one network section, `model: {name: msae_vgg16, width, pretrained, bat
           GMS queue's buffers under `queue.*`;
 format 2  registered components: `backbone: {name: vgg16, ...}`, `head: {name: msae | fc, ...}`, `model: {dim}`,
           and the queue's buffers under `loss.queue.*`.
+
+A correlation refiner stored before its `overlap` key existed divided every score by the whole window: it keeps
+that (`with_refiner_overlap`), so its figures stay as they were measured.
 """
 
 from __future__ import annotations
@@ -33,6 +36,16 @@ def upgraded_config(stored: DictConfig) -> DictConfig:
     cfg["head"] = head
     cfg["model"] = {"dim": model.get("dim", 4096), "shared": False}
     cfg.setdefault("sampler", {"name": "shuffle"})
+    return OmegaConf.create(cfg)
+
+
+def with_refiner_overlap(stored: DictConfig) -> DictConfig:
+    """`stored` with `refiner.overlap: window` where a correlation refiner's section predates the key."""
+    refiner = OmegaConf.select(stored, "refiner")
+    if refiner is None or refiner.get("name") != "correlation" or "overlap" in refiner:
+        return stored
+    cfg = OmegaConf.to_container(stored, resolve=False)
+    cfg["refiner"]["overlap"] = "window"
     return OmegaConf.create(cfg)
 
 

@@ -7,11 +7,17 @@ registered factory (geoloc/models/refiners/), and the keys of RefineConfig say h
 Positions are tile fractions (row, col) as geoloc.models.refiners.Refinement gives them; the truth is the split's
 query_tile_px over reference_size_px (VIGOR's offsets, unrounded where the synthetic tree writes them), the tile
 centre for one-to-one data (CVUSA, CVACT: the camera is at the centre, only the heading is to find).
+
+A query and a tile that holds it make a pair: its positive, and (with semi-positives, as VIGOR gives them) each
+semi-positive whose truth lies inside it, so the truths of all pairs cover the whole tile (tile_pairs). Ground scale
+is an input: with query_extent_m set, the query's map is drawn query_extent_m / (the tile's extent) times larger
+before it is matched, so one refiner meets tiles of any ground extent at the scale it was trained at.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -22,8 +28,8 @@ from geoloc.config import checked
 from geoloc.data.geo import distance_m, offset_to_latlon
 from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.eval.fine_error import (E2E_KEYS, FINE_HEADING_KEYS, FINE_KEYS, e2e_summary, fine_summary,
-                                    heading_summary)
+from geoloc.eval.fine_error import (E2E_KEYS, FINE_HEADING_KEYS, FINE_KEYS, WHOLE_TILE_KEYS, e2e_summary,
+                                    fine_summary, heading_summary, whole_tile_summary)
 from geoloc.eval.scoring import top_k
 from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, to_tensor
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
@@ -40,8 +46,16 @@ class RefineConfig:
     stage: str = "refine"  # refine: only the refiner trains (from init_from=RUN/last.pt); joint: with retrieval
     weight: float = 1.0  # joint: the refiner's loss weight beside the retrieval loss
     orientation_noise_deg: float = 0.0  # the query's heading is U(-X, X) off north (CCVPE's ori_noise); 0: known
-    semi_positives: bool = False  # train on the semi-positive tiles that hold the panorama too (CCVPE)
+    # train on every tile that holds the panorama (the semi-positives whose truth lies inside them too, as CCVPE):
+    # truths over the whole tile instead of its central half
+    semi_positives: bool = False
     size: int = 0  # the side in pixels the refiner reads the aligned query and the tile at; 0: dataset.aerial_size
+    # the ground metres the aligned query stands for: a tile of extent E is matched with the query's map drawn
+    # query_extent_m / E times larger (the ground scale as an input); 0: every tile as it is
+    query_extent_m: float = 0.0
+    # training: each tile cut to a random share in [1 - X, 1] of its side (the truth kept inside) and resized, so the
+    # refiner meets ground scales it was not rendered at; needs query_extent_m
+    scale_jitter: float = 0.0
 
     def __post_init__(self):
         if self.stage not in STAGES:
@@ -51,9 +65,27 @@ class RefineConfig:
         if self.weight <= 0 or self.size < 0 or self.size % 2:
             raise ValueError(f"refiner.weight must be > 0 and refiner.size an even number >= 0 (0: "
                              f"dataset.aerial_size); got weight={self.weight}, size={self.size}")
+        if not (np.isfinite(self.query_extent_m) and self.query_extent_m >= 0):
+            raise ValueError(f"refiner.query_extent_m must be a number of metres >= 0 (0: no scale input), got "
+                             f"{self.query_extent_m}")
+        if not 0.0 <= self.scale_jitter < 0.5 or (self.scale_jitter > 0 and not self.query_extent_m):
+            raise ValueError(f"refiner.scale_jitter must lie in [0, 0.5) and needs refiner.query_extent_m > 0 (the "
+                             f"refiner must know each tile's scale); got scale_jitter={self.scale_jitter}, "
+                             f"query_extent_m={self.query_extent_m}")
 
     def side(self, aerial_size: int) -> int:
         return self.size or aerial_size
+
+    def query_scale(self, extent_m) -> torch.Tensor | None:
+        """(B,) how many times larger each pair's query map is drawn for tiles of (B, 2) (height, width) metres,
+        or None without the scale input (query_extent_m = 0)."""
+        if not self.query_extent_m:
+            return None
+        width = torch.as_tensor(np.asarray(extent_m, np.float64), dtype=torch.float32).reshape(-1, 2)[:, 1]
+        if not bool(torch.isfinite(width).all()):
+            raise ValueError("refiner.query_extent_m needs each tile's ground extent; these tiles have no metres "
+                             "per pixel (set refiner.query_extent_m=0, or give the dataset's scale)")
+        return self.query_extent_m / width
 
     def candidates(self, heading_bins: int) -> torch.Tensor:
         """(K,) the headings tried: north alone when known; otherwise the bins 360 k / K within the prior +-X
@@ -91,6 +123,15 @@ def refine_nodes() -> dict[str, dict]:
             for name in registry.names("refiner")}
 
 
+def match(refiner, refine: RefineConfig, query_maps, reference_maps, candidates, extent_m=None):
+    """refiner.match of B pairs, with the query's scale for tiles of extent_m ((B, 2) metres) where the refiner
+    takes the ground scale as an input; a refiner that does not is called as before (a plug-in need not know it)."""
+    scale = None if extent_m is None else refine.query_scale(extent_m)
+    if scale is None:
+        return refiner.match(query_maps, reference_maps, candidates)
+    return refiner.match(query_maps, reference_maps, candidates, query_scale=scale.to(query_maps.device))
+
+
 # ---- items --------------------------------------------------------------------------------------------------
 def eval_offset(index: int, noise_deg: float) -> float:
     """The fixed heading of test query `index` under orientation noise +-X: U(-X, X) from numpy's
@@ -99,6 +140,18 @@ def eval_offset(index: int, noise_deg: float) -> float:
         return 0.0
     u = np.random.default_rng((EVAL_HEADING_SEED, int(index))).uniform(0.0, 1.0)
     return float((2.0 * u - 1.0) * noise_deg)
+
+
+def tile_pairs(split: RetrievalSplit, whole_tile: bool, queries=None) -> tuple[np.ndarray, np.ndarray]:
+    """((P,) query rows, (P,) tile rows) of the pairs of `queries` (default all) with a tile that holds them: the
+    positive, and with `whole_tile` each semi-positive whose truth lies inside it (RetrievalSplit.semi_inside)."""
+    rows = np.arange(split.num_queries) if queries is None else np.asarray(queries, np.int64)
+    inside = split.semi_inside() if whole_tile else None
+    if inside is None:
+        return rows, split.positives[rows]
+    keep = np.column_stack([np.ones(len(rows), bool), inside[rows]])
+    tiles = np.column_stack([split.positives[rows], split.semi_positives[rows]])
+    return np.broadcast_to(rows[:, None], tiles.shape)[keep], tiles[keep]
 
 
 def truth_fraction(split: RetrievalSplit, index: int, tile: int) -> np.ndarray:
@@ -122,23 +175,44 @@ def turned_fraction(frac: np.ndarray, quarter_turns: int, flip: bool) -> np.ndar
     return np.array([row, col])
 
 
+def jittered_tile(aerial: np.ndarray, frac: np.ndarray, jitter: float,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """The tile cut to a random share in [1 - jitter, 1] of its side, placed at random with the truth inside ->
+    (the cut, the truth's fraction in it, the share kept)."""
+    h, w = aerial.shape[:2]
+    side = max(2, int(round(rng.uniform(1.0 - jitter, 1.0) * min(h, w))))
+    start = []
+    for f, size in zip(frac, (h, w)):
+        at = f * size  # the truth in pixels; the cut [s, s + side) keeps it inside
+        low, high = max(0, int(np.ceil(at - side))), min(size - side, int(np.floor(at)))
+        start.append(int(rng.integers(low, high + 1)) if high >= low else min(max(0, int(at - side / 2)), size - side))
+    r0, c0 = start
+    cut = aerial[r0:r0 + side, c0:c0 + side]
+    return cut, np.array([(frac[0] * h - r0) / side, (frac[1] * w - c0) / side]), side / min(h, w)
+
+
 def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refine: RefineConfig,
                 rng: np.random.Generator | None) -> dict:
     """A training (rng given) or test item for the refiner: the query seen at a heading off north (drawn, or fixed
     per query for tests), the tile (the positive, or with semi_positives any tile holding the query), the truth.
 
     -> {"street": the view (H x W x 3, for the retrieval inputs), "aerial": the tile as turned, "refine_query",
-    "refine_reference": 3 x s x s, "tile_px": (2,) tile fraction, "refine_heading": degrees in [0, 360)}."""
-    tiles = [int(split.positives[index])]
-    if refine.semi_positives and split.semi_positives is not None and rng is not None:
-        tiles += [int(t) for t in split.semi_positives[index] if t >= 0]
-    tile = tiles[int(rng.integers(len(tiles)))] if len(tiles) > 1 else tiles[0]
+    "refine_reference": 3 x s x s (cut with scale_jitter), "tile_px": (2,) tile fraction, "refine_heading": degrees
+    in [0, 360), "refine_extent_m": (2,) metres the refiner's tile covers (NaN where the split has no scale)}."""
+    _, tiles = tile_pairs(split, refine.semi_positives and rng is not None, [index])
+    tile = int(tiles[int(rng.integers(len(tiles)))]) if len(tiles) > 1 else int(tiles[0])
     frac = truth_fraction(split, index, tile)
     aerial = read_rgb(split.references[tile])
     if rng is not None and cfg.joint_flip_rotate:
         turns, flip = int(rng.integers(4)), bool(rng.integers(2))
         street, aerial = flip_rotate(street, aerial, turns, flip)
         frac = turned_fraction(frac, turns, flip)
+    extent = (np.full(2, np.nan) if split.reference_extent_m is None
+              else split.reference_extent_m[tile].astype(np.float64))
+    tile_image = aerial
+    if rng is not None and refine.scale_jitter > 0:
+        tile_image, frac, share = jittered_tile(aerial, frac, refine.scale_jitter, rng)
+        extent = extent * share
     noise = refine.orientation_noise_deg
     offset = (float(rng.uniform(-noise, noise)) if noise > 0 else 0.0) if rng is not None else eval_offset(index, noise)
     view = crop_view(street, 360.0, offset) if offset else street
@@ -146,15 +220,19 @@ def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refi
     small = replace(cfg, aerial_size=side)
     return {"street": view, "aerial": aerial,
             "refine_query": to_tensor(align_query(view, small, split.query_view)),
-            "refine_reference": to_tensor(resize(aerial, (side, side))),
-            "tile_px": torch.tensor(frac, dtype=torch.float32), "refine_heading": offset % 360.0}
+            "refine_reference": to_tensor(resize(tile_image, (side, side))),
+            "tile_px": torch.tensor(frac, dtype=torch.float32), "refine_heading": offset % 360.0,
+            "refine_extent_m": torch.tensor(extent, dtype=torch.float32)}
 
 
 # ---- metrics ------------------------------------------------------------------------------------------------
 def fine_plan(split: RetrievalSplit, refine: RefineConfig) -> list:
-    """The key sets refinement reports on `split`: metres where the tiles' scale is known, the heading when it is
-    unknown, end to end where the split has positions and is not one-to-one."""
+    """The key sets refinement reports on `split`: metres where the tiles' scale is known (over the whole tile where
+    the split gives semi-positives), the heading when it is unknown, end to end where the split has positions and
+    is not one-to-one."""
     plan = [FINE_KEYS] if split.reference_metres_per_px is not None else []
+    if plan and split.semi_positives is not None and split.query_semi_tile_px is not None:
+        plan.append(WHOLE_TILE_KEYS)
     if refine.orientation_noise_deg > 0:
         plan.append(FINE_HEADING_KEYS)
     if split.positions()[0] is not None and split.reference_metres_per_px is not None and not split.one_to_one:
@@ -163,21 +241,25 @@ def fine_plan(split: RetrievalSplit, refine: RefineConfig) -> list:
 
 
 @torch.no_grad()
-def refined(refiner, query_maps: torch.Tensor, reference_maps: torch.Tensor, tiles: torch.Tensor,
-            candidates: torch.Tensor, chunk: int = 64,
-            extent_m: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """Each query's map matched against reference map tiles[i]: ((Q, 2) tile fractions, (Q,) headings, and with
-    extent_m ((Q, 2) metres each query's tile covers) the (Q,) probability mass within RADIUS_M of each position,
-    the refiner's own score that a calibrator maps to P(error <= RADIUS_M); else None)."""
+def refined(refiner, refine: RefineConfig, query_maps: torch.Tensor, reference_maps: torch.Tensor, queries,
+            tiles, candidates: torch.Tensor, split: RetrievalSplit | None = None,
+            chunk: int = 64) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The pairs (query_maps[queries[p]], reference_maps[tiles[p]]) matched: ((P, 2) tile fractions, (P,) headings,
+    and where `split` gives the tiles' extent the (P,) probability mass within RADIUS_M of each position, the
+    refiner's own score that a calibrator maps to P(error <= RADIUS_M); else None). The extent also gives the
+    query's scale where the refiner takes it (RefineConfig.query_scale)."""
+    queries, tiles = torch.as_tensor(np.asarray(queries)), torch.as_tensor(np.asarray(tiles))
+    extents = None if split is None or split.reference_extent_m is None else split.reference_extent_m[tiles.numpy()]
     positions, headings, masses = [], [], []
-    for start in range(0, query_maps.shape[0], chunk):
+    for start in range(0, len(tiles), chunk):
         part = slice(start, start + chunk)
-        out = refiner.match(query_maps[part], reference_maps[tiles[part]], candidates)
+        extent = None if extents is None else extents[part]
+        out = match(refiner, refine, query_maps[queries[part]], reference_maps[tiles[part]], candidates, extent)
         positions.append(out.position().float().cpu())
         headings.append(out.heading().float().cpu())
-        if extent_m is not None:
-            extent = torch.as_tensor(np.asarray(extent_m[part], np.float64), dtype=torch.float32)
-            masses.append(out.mass_within(RADIUS_M, extent.to(query_maps.device)).float().cpu())
+        if extent is not None:
+            metres = torch.as_tensor(np.asarray(extent, np.float64), dtype=torch.float32).to(query_maps.device)
+            masses.append(out.mass_within(RADIUS_M, metres).float().cpu())
     return torch.cat(positions), torch.cat(headings), torch.cat(masses) if masses else None
 
 
@@ -185,20 +267,25 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
                  query_maps: torch.Tensor, reference_maps: torch.Tensor, true_heading: torch.Tensor,
                  query_descriptors: torch.Tensor | None = None,
                  reference_descriptors: torch.Tensor | None = None) -> dict[str, float]:
-    """fine_plan(split)'s metrics: each query refined in its positive tile (the fine-grained protocol), and in its
-    top-1 retrieved tile (end to end: the tile centre's position plus the refined offset, against the query's)."""
-    out: dict[str, float] = {}
+    """fine_plan(split)'s metrics: each query refined in its positive tile (the fine-grained protocol), in every
+    tile that holds it (the whole tile), and in its top-1 retrieved tile (end to end: the tile centre's position
+    plus the refined offset, against the query's)."""
+    out: dict = {}
     plan = fine_plan(split, refine)
-    positives = torch.from_numpy(split.positives)
-    position, heading, _ = refined(refiner, query_maps, reference_maps, positives, candidates)
+    rows = np.arange(split.num_queries)
+    position, heading, _ = refined(refiner, refine, query_maps, reference_maps, rows, split.positives, candidates,
+                                   split)
     if FINE_KEYS in plan:
-        out.update(fine_summary(positive_errors_m(position.numpy(), split)), **labels_of(split))
+        out.update(fine_summary(pair_errors_m(position.numpy(), split, rows, split.positives)), **labels_of(split))
+    if WHOLE_TILE_KEYS in plan:
+        answers = whole_tile_answers(refiner, refine, split, candidates, query_maps, reference_maps)
+        out.update(whole_tile_summary(answers.error_m, answers.truth))
     if FINE_HEADING_KEYS in plan:
         out.update(heading_summary(circular_error_deg(heading.numpy(), true_heading.cpu().numpy())))
     if E2E_KEYS in plan:
-        top1 = top_k(query_descriptors, reference_descriptors, 1)[1][:, 0].cpu()
-        e2e_position, _, _ = refined(refiner, query_maps, reference_maps, top1, candidates)
-        out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), top1.numpy(), split)))
+        top1 = top_k(query_descriptors, reference_descriptors, 1)[1][:, 0].cpu().numpy()
+        e2e_position, _, _ = refined(refiner, refine, query_maps, reference_maps, rows, top1, candidates, split)
+        out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), top1, split)))
     return out
 
 
@@ -207,22 +294,32 @@ def labels_of(split: RetrievalSplit) -> dict[str, str]:
     return {METRE_LABELS: split.tile_labels or "unknown"}
 
 
-def fine_answers(refiner, split: RetrievalSplit, candidates: torch.Tensor, query_maps: torch.Tensor,
-                 reference_maps: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Each query refined in its positive tile: ((Q,) the probability mass within RADIUS_M of its position, (Q,)
-    its metre error): what the "within_5m" confidence is fitted on and scored against (confidence.py)."""
+class TileAnswers(NamedTuple):
+    """The refiner's answers for P query-tile pairs."""
+
+    mass: np.ndarray  # (P,) the probability mass within RADIUS_M of the answer: the refiner's own score
+    error_m: np.ndarray  # (P,) metres from the truth
+    truth: np.ndarray  # (P, 2) the truth's tile fraction
+    positive: np.ndarray  # (P,) bool: the pair's tile is the query's positive
+
+
+def whole_tile_answers(refiner, refine: RefineConfig, split: RetrievalSplit, candidates: torch.Tensor,
+                       query_maps: torch.Tensor, reference_maps: torch.Tensor, queries=None) -> TileAnswers:
+    """Each of `queries` (default all) refined in every tile that holds it (tile_pairs). What the "within_5m"
+    confidence is fitted on and scored against (confidence.py), and the whole-tile metres."""
     if split.reference_metres_per_px is None:
         raise ValueError(f"{split.name}: its tiles have no metres per pixel, so a metre error has no meaning")
-    positives = torch.from_numpy(split.positives)
-    extent = split.reference_extent_m[split.positives]
-    position, _, mass = refined(refiner, query_maps, reference_maps, positives, candidates, extent_m=extent)
-    return mass.double().numpy(), positive_errors_m(position.numpy(), split)
+    rows, tiles = tile_pairs(split, True, queries)
+    position, _, mass = refined(refiner, refine, query_maps, reference_maps, rows, tiles, candidates, split)
+    truth = np.stack([truth_fraction(split, int(q), int(t)) for q, t in zip(rows, tiles)])
+    return TileAnswers(mass.double().numpy(), fraction_error_m(position.numpy(), truth, split, tiles), truth,
+                       tiles == split.positives[rows])
 
 
-def positive_errors_m(position: np.ndarray, split: RetrievalSplit) -> np.ndarray:
-    """(Q,) metres between each query's (Q, 2) refined tile fraction in its positive tile and the truth."""
-    truth = np.stack([truth_fraction(split, i, int(t)) for i, t in enumerate(split.positives)])
-    return fraction_error_m(position, truth, split, split.positives)
+def pair_errors_m(position: np.ndarray, split: RetrievalSplit, queries, tiles) -> np.ndarray:
+    """(P,) metres between the (P, 2) refined tile fractions of queries[p] in tiles[p] and their truths."""
+    truth = np.stack([truth_fraction(split, int(q), int(t)) for q, t in zip(queries, tiles)])
+    return fraction_error_m(position, truth, split, tiles)
 
 
 def fraction_error_m(estimate: np.ndarray, truth: np.ndarray, split: RetrievalSplit, tiles) -> np.ndarray:

@@ -115,7 +115,10 @@ class CrossViewTask(Task):
     def training_step(self, batch, engine):
         if self.refine is None:
             return self._retrieval_step(batch)
-        out = self.refiner(batch["refine_query"], batch["refine_reference"], self.refine_candidates())
+        scale = {}  # the ground scale as an input (RefineConfig.query_extent_m)
+        if self.refine.query_extent_m:
+            scale["query_scale"] = self.refine.query_scale(batch["refine_extent_m"].cpu()).to(batch["refine_query"].device)
+        out = self.refiner(batch["refine_query"], batch["refine_reference"], self.refine_candidates(), **scale)
         refine_loss = out.nll(batch["tile_px"], batch["refine_heading"].float()).mean()
         if self.refine.stage == "refine":
             return {"loss": refine_loss, "refine_loss": refine_loss.detach()}

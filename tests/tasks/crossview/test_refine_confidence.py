@@ -19,7 +19,7 @@ from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1
                                                fit_within, refine_features, with_refiner)
 from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.tasks.crossview.gallery import GalleryConfig
-from geoloc.tasks.crossview.refine import fine_answers
+from geoloc.tasks.crossview.refine import RefineConfig, whole_tile_answers
 from helpers.gallery_runs import META
 
 LATTICE = 17  # the fake refiner's map: 17 x 17 positions over the tile
@@ -80,10 +80,12 @@ def brute_answers(split: RetrievalSplit, query: torch.Tensor) -> tuple[np.ndarra
     return np.array(masses), np.array(errors)
 
 
-def test_fine_answers_are_the_mass_within_5m_and_the_metre_error_in_the_positive_tile():
+def test_tile_answers_are_the_mass_within_5m_and_the_metre_error_in_the_positive_tile():
     split = tile_split(24, 0, "test")
     query = guesses(split, 1)
-    mass, error = fine_answers(GaussianGuess(), split, torch.zeros(1), query, torch.zeros(24, 1))
+    mass, error, truth, positive = whole_tile_answers(GaussianGuess(), RefineConfig(), split, torch.zeros(1), query,
+                                                      torch.zeros(24, 1))
+    assert positive.all() and truth == pytest.approx(split.query_tile_px / SIDE_PX)  # one-to-one: no semi-positive
     expect_mass, expect_error = brute_answers(split, query)
     assert mass == pytest.approx(expect_mass, abs=1e-5)
     assert error == pytest.approx(expect_error, abs=1e-3)
@@ -92,8 +94,8 @@ def test_fine_answers_are_the_mass_within_5m_and_the_metre_error_in_the_positive
     assert error == pytest.approx(guess_error, abs=1e-3)
     assert 0.2 < (error <= 5).mean() < 0.8
     with pytest.raises(ValueError, match="no metres per pixel"):
-        fine_answers(GaussianGuess(), RetrievalSplit("plain", "/d", ["q"], ["r"], [0]), torch.zeros(1),
-                     query[:1], torch.zeros(1, 1))
+        whole_tile_answers(GaussianGuess(), RefineConfig(), RetrievalSplit("plain", "/d", ["q"], ["r"], [0]),
+                           torch.zeros(1), query[:1], torch.zeros(1, 1))
 
 
 def test_the_within_5m_calibrator_is_a_logistic_fit_on_the_mass_log_odds():
@@ -114,7 +116,7 @@ def test_the_within_5m_calibrator_is_a_logistic_fit_on_the_mass_log_odds():
 
 
 def refining_task():
-    refine = SimpleNamespace(orientation_noise_deg=0.0)
+    refine = RefineConfig()
     return SimpleNamespace(model_cfg=SimpleNamespace(dim=8), refiner=GaussianGuess(), refine=refine,
                            refine_candidates=lambda: torch.zeros(1))
 

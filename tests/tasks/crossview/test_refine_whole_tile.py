@@ -1,0 +1,102 @@
+"""The refiner over the whole tile: which query-tile pairs hold the truth, the whole-tile summary against brute force,
+the scale jitter's cut (the truth stays on the same ground), the ground scale as an input, and the old checkpoints'
+window normalisation kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.eval.fine_error import whole_tile_summary
+from geoloc.tasks.crossview.legacy import with_refiner_overlap
+from geoloc.tasks.crossview.refine import RefineConfig, jittered_tile, tile_pairs, truth_fraction
+from omegaconf import OmegaConf
+
+
+def two_query_split():
+    """Two queries in 64 px tiles: query 0 with its positive and three semi-positives, the last of them outside
+    its tile (a corrected VIGOR label); query 1 with one semi-positive."""
+    semi = np.array([[1, 2, 3], [0, -1, -1]])
+    semi_px = np.array([[[10.0, 60.0], [63.0, 2.0], [-1.0, 30.0]], [[5.0, 5.0], [np.nan] * 2, [np.nan] * 2]])
+    return RetrievalSplit("two", "/d", ["q0", "q1"], [f"t{i}" for i in range(4)], positives=[0, 2],
+                          semi_positives=semi, reference_size_px=np.full((4, 2), 64),
+                          reference_metres_per_px=np.full(4, 0.5), query_tile_px=[[30.0, 33.0], [20.0, 40.0]],
+                          query_semi_tile_px=semi_px)
+
+
+def test_tile_pairs_are_the_positive_and_the_semi_positives_that_hold_the_truth():
+    split = two_query_split()
+    assert [a.tolist() for a in tile_pairs(split, False)] == [[0, 1], [0, 2]]
+    queries, tiles = tile_pairs(split, True)
+    assert queries.tolist() == [0, 0, 0, 1, 1] and tiles.tolist() == [0, 1, 2, 2, 0]
+    assert [a.tolist() for a in tile_pairs(split, True, [1])] == [[1, 1], [2, 0]]
+    assert truth_fraction(split, 0, 2).tolist() == [63 / 64, 2 / 64]
+
+
+def test_the_whole_tile_summary_is_its_brute_force():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 1, (400, 2))
+    errors = rng.gamma(2.0, 2.0, 400)
+    out = whole_tile_summary(errors, truth)
+    edge = [e for e, (r, c) in zip(errors, truth) if min(r, c) < 0.1 or max(r, c) > 0.9]
+    centre = [e for e, (r, c) in zip(errors, truth) if 0.25 <= r <= 0.75 and 0.25 <= c <= 0.75]
+    assert out["whole_tile_edge_median_m"] == pytest.approx(np.median(edge))
+    assert out["whole_tile_centre_median_m"] == pytest.approx(np.median(centre))
+    assert out["whole_tile_median_m"] == pytest.approx(np.median(errors))
+    assert out["whole_tile_within_3m"] == pytest.approx(np.mean(errors <= 3))
+    nowhere = whole_tile_summary([1.0, 2.0], [[0.5, 0.5], [0.4, 0.6]])
+    assert np.isnan(nowhere["whole_tile_edge_median_m"]) and nowhere["whole_tile_centre_median_m"] == 1.5
+
+
+@pytest.mark.parametrize("frac", [(0.5, 0.5), (0.02, 0.97), (0.99, 0.01)])
+def test_the_jittered_cut_keeps_the_truth_on_its_ground(frac):
+    """A marked pixel at the truth is where the cut's fraction says, for truths at the centre and at the edges."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        tile = np.zeros((80, 80, 3), np.uint8)
+        row, col = int(frac[0] * 80), int(frac[1] * 80)
+        tile[row, col] = 255
+        truth = np.array([(row + 0.5) / 80, (col + 0.5) / 80])
+        cut, inside, share = jittered_tile(tile, truth, 0.2, rng)
+        assert cut.shape[0] == cut.shape[1] == round(share * 80) and 0.8 - 1e-9 <= share <= 1.0
+        r, c = np.argwhere(cut[..., 0] == 255)[0]
+        assert inside == pytest.approx([(r + 0.5) / cut.shape[0], (c + 0.5) / cut.shape[1]])
+
+
+def test_the_ground_scale_is_an_input_only_where_asked():
+    assert RefineConfig().query_scale([[64.52, 64.52]]) is None
+    scale = RefineConfig(query_extent_m=72.96).query_scale([[64.52, 64.52], [75.61, 75.61]])
+    assert scale.tolist() == pytest.approx([72.96 / 64.52, 72.96 / 75.61])
+    with pytest.raises(ValueError, match="no metres per pixel"):
+        RefineConfig(query_extent_m=72.96).query_scale([[np.nan, np.nan]])
+    with pytest.raises(ValueError, match="scale_jitter .* needs refiner.query_extent_m"):
+        RefineConfig(scale_jitter=0.1)
+    with pytest.raises(ValueError, match="query_extent_m must be a number of metres >= 0"):
+        RefineConfig(query_extent_m=-1.0)
+
+
+def test_a_stored_correlation_refiner_keeps_its_window_normalisation():
+    old = OmegaConf.create({"refiner": {"name": "correlation", "width": 32}, "model": {"dim": 8}})
+    assert with_refiner_overlap(old).refiner.overlap == "window"
+    new = OmegaConf.create({"refiner": {"name": "correlation", "overlap": "mean"}})
+    assert with_refiner_overlap(new).refiner.overlap == "mean"
+    plug_in = OmegaConf.create({"refiner": {"name": "dot_map"}})
+    assert "overlap" not in with_refiner_overlap(plug_in).refiner
+    assert with_refiner_overlap(OmegaConf.create({"model": {"dim": 8}})) == OmegaConf.create({"model": {"dim": 8}})
+
+
+def test_query_scale_reaches_the_refiner_through_match():
+    from geoloc.tasks.crossview.refine import match
+
+    seen = {}
+
+    class Spy(torch.nn.Module):
+        def match(self, query, reference, headings, **kwargs):
+            seen.update(kwargs)
+
+    match(Spy(), RefineConfig(), torch.zeros(2, 1), torch.zeros(2, 1), torch.zeros(1), [[64.0, 64.0]] * 2)
+    assert seen == {}  # a refiner without the scale input is called as before
+    match(Spy(), RefineConfig(query_extent_m=72.0), torch.zeros(2, 1), torch.zeros(2, 1), torch.zeros(1),
+          [[64.0, 64.0], [72.0, 72.0]])
+    assert seen["query_scale"].tolist() == pytest.approx([72.0 / 64.0, 1.0])

@@ -5,8 +5,8 @@
     ROOT/queries.csv        image,lat,lon | image,east_m,north_m[,utm_zone]   (geoloc/data/place_tables.py)
     ROOT/tiles.csv          the same columns: the tile centre
 
-Without a CSV, the folder's file names must carry their position the VPR tools' way
-(`@UTM_east@UTM_north@zone@letter@lat@lon@...@.jpg`). Queries and tiles must use one coordinate system.
+Without a CSV, the folder's file names must carry their position the VPR tools' way (`@UTM_east@UTM_north@.jpg`,
+zone, lat, lon, ... optional: geoloc/data/vpr_names.py). Queries and tiles must use one coordinate system.
 
 Relevance is the VPR convention (geoloc/data/relevance.py, kind ``radius``): a query's positive is its nearest tile,
 and every tile within `radius_m` (25 m) of the query is relevant too.
@@ -31,6 +31,7 @@ from geoloc.data.geo import distance_m, latlon_to_offset
 from geoloc.data.place_tables import PlaceTable, read_places
 from geoloc.data.relevance import RADIUS_M
 from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.data.utm_zones import same_frame
 from geoloc.registry import register
 
 SPLITS = ("train", "test", "all")
@@ -89,7 +90,7 @@ def folder_split(root, split: str = "test", tile_extent_m: float | None = None, 
     if queries.kind != tiles.kind:
         raise ValueError(f"{queries.source} gives {_system_name(queries.kind)} and {tiles.source} gives "
                          f"{_system_name(tiles.kind)}: give both in one coordinate system")
-    if queries.zone and tiles.zone and queries.zone != tiles.zone:
+    if queries.zone and tiles.zone and not same_frame(queries.zone, tiles.zone):
         raise ValueError(f"{queries.source} is in UTM zone {queries.zone} and {tiles.source} in {tiles.zone}: give "
                          "both in one zone, or as lat,lon")
     kind = tiles.kind

@@ -83,6 +83,25 @@ def test_vpr_file_names_need_no_csv_and_one_utm_zone(own):
         folder(str(own), "all", tile_extent_m=40.0)
 
 
+def name_as(own, side, names):
+    (own / f"{side}.csv").unlink(missing_ok=True)
+    for old, new in zip(sorted((own / side).iterdir()), names):
+        old.rename(own / side / new)
+
+
+def test_minimal_vpr_names_read_and_zones_must_share_a_frame(own):
+    name_as(own, "queries", [f"@{500000 + e:.2f}@{5400000 + n:.2f}@.jpg" for e, n in QUERIES])  # no zone
+    name_as(own, "tiles", [vpr_name(*p, letter="T" if i % 2 else "U", k=i) for i, p in enumerate(TILES)])
+    split = folder(str(own), "all", tile_extent_m=45.0)  # 32T and 32U: one zone, two latitude bands
+    read = split.query_xy[np.lexsort(split.query_xy.T)]  # files in name order; compare as sets of positions
+    want = QUERIES + [500000, 5400000]
+    assert np.allclose(read, want[np.lexsort(want.T)]) and split.num_references == len(TILES)
+    first = sorted((own / "queries").iterdir())[0]
+    first.rename(first.with_name(first.name.replace("@.jpg", "@33@@.jpg")))
+    with pytest.raises(ValueError, match=r"queries is in UTM zone 33 and .*tiles in 32[TU]: give both in one zone"):
+        folder(str(own), "all", tile_extent_m=45.0)
+
+
 def write_table(own, side, text):
     (own / f"{side}.csv").write_text(text)
 

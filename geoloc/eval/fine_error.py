@@ -23,7 +23,10 @@ E2E_KEYS = KeySet({"e2e_median_m": float("inf"), **{f"e2e_within_{t}m": 0.0 for 
 
 
 def fine_summary(errors_m) -> dict[str, float]:
-    """FINE_KEYS of (Q,) metre errors with the positive tile given."""
+    """FINE_KEYS of (Q,) metre errors with the positive tile given; with no error (no query's position in its
+    tile is known), every key at its worst."""
+    if np.asarray(errors_m).shape == (0,):
+        return dict(FINE_KEYS.worst)
     e = checked_errors(errors_m, "fine errors")
     return FINE_KEYS.values({"fine_mean_m": e.mean(), "fine_median_m": np.median(e),
                              **shares_within(e, FINE_THRESHOLDS_M, "fine_")})

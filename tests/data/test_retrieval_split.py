@@ -88,6 +88,8 @@ def test_tile_geometry_and_query_positions():
     np.testing.assert_allclose(s.query_tile_offset_m(), [[0, 0], [8, 16], [-6, 11]])
     assert _tiles(reference_metres_per_px=None).query_tile_offset_m() is None
     assert _tiles(reference_metres_per_px=None).reference_extent_m is None
+    unknown = _tiles(query_tile_px=[[32, 16], [np.nan, np.nan], [10, 4]])  # a query no tile shows
+    assert np.isnan(unknown.query_tile_offset_m()[1]).all() and unknown.query_tile_offset_m()[2].tolist() == [-6, 11]
 
 
 @pytest.mark.parametrize("kw, match", [

@@ -11,6 +11,7 @@ centre for one-to-one data (CVUSA, CVACT: the camera is at the centre, only the 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -30,6 +31,7 @@ from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, 
 
 STAGES = ("refine", "joint")
 RADIUS_M = 5.0  # the refined answer's confidence is P(error <= RADIUS_M) (confidence.py's "within_5m")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -191,7 +193,7 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
     positives = torch.from_numpy(split.positives)
     position, heading, _ = refined(refiner, query_maps, reference_maps, positives, candidates)
     if FINE_KEYS in plan:
-        out.update(fine_summary(positive_errors_m(position.numpy(), split)))
+        out.update(fine_summary(positive_errors_m(position.numpy(), split)[shown_queries(split)]))
     if FINE_HEADING_KEYS in plan:
         out.update(heading_summary(circular_error_deg(heading.numpy(), true_heading.cpu().numpy())))
     if E2E_KEYS in plan:
@@ -203,18 +205,34 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
 
 def fine_answers(refiner, split: RetrievalSplit, candidates: torch.Tensor, query_maps: torch.Tensor,
                  reference_maps: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Each query refined in its positive tile: ((Q,) the probability mass within RADIUS_M of its position, (Q,)
-    its metre error): what the "within_5m" confidence is fitted on and scored against (confidence.py)."""
+    """Each query a tile shows (`shown_queries`) refined in its positive tile: ((Q',) the probability mass within
+    RADIUS_M of its position, (Q',) its metre error): what the "within_5m" confidence is fitted on and scored
+    against (confidence.py)."""
     if split.reference_metres_per_px is None:
         raise ValueError(f"{split.name}: its tiles have no metres per pixel, so a metre error has no meaning")
     positives = torch.from_numpy(split.positives)
     extent = split.reference_extent_m[split.positives]
     position, _, mass = refined(refiner, query_maps, reference_maps, positives, candidates, extent_m=extent)
-    return mass.double().numpy(), positive_errors_m(position.numpy(), split)
+    shown = shown_queries(split)
+    return mass.double().numpy()[shown], positive_errors_m(position.numpy(), split)[shown]
+
+
+def shown_queries(split: RetrievalSplit) -> np.ndarray:
+    """(Q,) bool: the queries whose position in their positive tile is known. A test query that no tile shows
+    (own data under the radius rule keeps it, its query_tile_px NaN) has no fine-grained error: the fine-grained
+    metrics skip it, and a warning says how many they skip."""
+    if split.query_tile_px is None:
+        return np.ones(split.num_queries, bool)
+    shown = ~np.isnan(split.query_tile_px).any(axis=1)
+    if not shown.all():
+        log.warning("%s: %d of %d queries lie in no tile, so their position in a tile is unknown: the fine-grained "
+                    "metrics (fine_*) skip them", split.name, int((~shown).sum()), split.num_queries)
+    return shown
 
 
 def positive_errors_m(position: np.ndarray, split: RetrievalSplit) -> np.ndarray:
-    """(Q,) metres between each query's (Q, 2) refined tile fraction in its positive tile and the truth."""
+    """(Q,) metres between each query's (Q, 2) refined tile fraction in its positive tile and the truth (NaN where
+    the truth is unknown: `shown_queries`)."""
     truth = np.stack([truth_fraction(split, i, int(t)) for i, t in enumerate(split.positives)])
     return fraction_error_m(position, truth, split, split.positives)
 

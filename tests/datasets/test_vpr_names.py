@@ -1,11 +1,14 @@
-"""VPR file names (geoloc/data/vpr_names.py) read as the field's reference reads them, and UTM zones
-(geoloc/data/utm_zones.py): which zones share a frame, and the errors of bad names and zones."""
+"""VPR file names (geoloc/data/vpr_names.py) read as the field's reference reads them (gmberton/VPR-methods-
+evaluation, test_dataset.py, its rule rewritten in helpers/vpr_reference.py), and UTM zones (geoloc/data/
+utm_zones.py): which zones share a frame, and the errors of bad names and zones."""
 
 from __future__ import annotations
 
 import pytest
 from geoloc.data.utm_zones import one_zone, parse_zone, same_frame
 from geoloc.data.vpr_names import vpr_position
+
+from helpers.vpr_reference import reference_east_north  # gmberton/VPR-methods-evaluation, test_dataset.py
 
 NAMES = [
     "@500123.4@4649876.5@.jpg",  # the minimal form
@@ -19,13 +22,6 @@ NAMES = [
     "@ 7.0@8 @.jpg",  # white space, which float() takes
     "0001@302.5@-17@33@N@.jpg",  # a prefix before the first '@', which neither reads
 ]
-
-
-def reference_east_north(path: str) -> tuple[float, float]:
-    """The rule of gmberton/VPR-methods-evaluation, file test_dataset.py, rewritten: the path is split at '@', field
-    1 is the UTM east and field 2 the UTM north, as floats; nothing else of the path is read."""
-    fields = path.split("@")
-    return float(fields[1]), float(fields[2])
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -3,15 +3,15 @@
 A positions CSV (`queries.csv` for street images, `tiles.csv` for aerial tiles, the tile centre) has a header and one
 row per image, in one of two coordinate systems:
 - `image,lat,lon`: WGS84 degrees;
-- `image,east_m,north_m` (optionally `,utm_zone`, e.g. `32T`, the same on every row): metres in one projected frame,
+- `image,east_m,north_m` (optionally `,utm_zone`, e.g. `32T`, one zone on every row): metres in one projected frame,
   e.g. UTM easting / northing.
 `image` is the file's path under the folder (sub-folders allowed). The columns may come in any order; any other
 column is refused.
 
-VPR names (gmberton's VPR-datasets-downloader, the MeshSynth / SF-XL tools):
-`@UTM_east@UTM_north@UTM_zone_number@UTM_zone_letter@lat@lon@...@.jpg`; the fields after lon (pano id, heading,
-...) are not read. The UTM metres are the positions, as the VPR tools measure distances in them; every file must
-lie in one UTM zone.
+Without a CSV, the file names give the positions the VPR tools' way (geoloc/data/vpr_names.py):
+`@UTM_east@UTM_north@.jpg`, or with the optional fields `@UTM_east@UTM_north@UTM_zone_number@UTM_zone_letter@lat@lon@
+...@.jpg`. The UTM metres are the positions, as the VPR tools measure distances in them; the zones given must agree
+(geoloc/data/utm_zones.py).
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.data.list_files import csv_rows, refuse_repeats
+from geoloc.data.utm_zones import one_zone, parse_zone
+from geoloc.data.vpr_names import vpr_position
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 SYSTEMS = {"latlon": ("lat", "lon"), "xy": ("east_m", "north_m")}
@@ -35,7 +37,7 @@ class PlaceTable:
     """Images of one folder and where each was taken.
 
     paths: N absolute paths; kind: "latlon" (degrees) or "xy" (metres); positions: (N, 2) (lat, lon) or
-    (east, north); zone: the UTM zone ("32T") of "xy" positions when known; source: the CSV or the folder read,
+    (east, north); zone: the UTM zone ("32T", "32") of "xy" positions when any is given; source: the CSV or the folder read,
     for messages; lines: the CSV line of each image (0 for a VPR name)."""
 
     paths: list
@@ -108,16 +110,16 @@ def _from_csv(folder: Path, table: Path) -> PlaceTable:
             raise ValueError(f"{where}: lat,lon = {a},{b} is not a position in degrees (|lat| <= 90, |lon| <= 180); "
                              "metres (e.g. UTM) go in a file with the header image,east_m,north_m, and one file "
                              "holds one coordinate system")
-        if zone_at is not None:
-            zones.append((row[zone_at].strip().upper(), where))
+        zone = parse_zone(row[zone_at], where) if zone_at is not None else None
+        if zone is not None:
+            zones.append((zone, where))
         paths.append(path)
         positions.append((a, b))
         lines.append(line)
     if not paths:
         raise ValueError(f"{table} has a header and no row: list each image of {folder} with its position")
     refuse_repeats(table, [(Path(p).relative_to(folder).as_posix(), k) for p, k in zip(paths, lines)], "image")
-    zone = _one_zone(zones) if zones else None
-    return PlaceTable(paths, kind, np.asarray(positions, np.float64), zone, table, lines)
+    return PlaceTable(paths, kind, np.asarray(positions, np.float64), one_zone(zones), table, lines)
 
 
 def _system(table: Path, line: int, columns: list[str]) -> str:
@@ -136,40 +138,12 @@ def _system(table: Path, line: int, columns: list[str]) -> str:
     return kinds[0]
 
 
-def _one_zone(zones: list[tuple[str, str]]) -> str:
-    """The one UTM zone of (zone, where) pairs, or an error naming the first that differs."""
-    first, first_where = zones[0]
-    for zone, where in zones:
-        if zone != first:
-            raise ValueError(f"{where}: UTM zone {zone} differs from {first} ({first_where}); metres of "
-                             "two zones are two frames and their distances are wrong: give positions in one zone, "
-                             "or as lat,lon")
-    return first
-
-
-def vpr_position(name: str, where: str) -> tuple[float, float, str, float, float]:
-    """`@east@north@zone@letter@lat@lon@...@.ext` -> (east, north, zone + letter, lat, lon)."""
-    fields = Path(name).name.split("@")
-    try:
-        if len(fields) < 8 or fields[0] != "":
-            raise ValueError
-        east, north, lat, lon = (float(fields[k]) for k in (1, 2, 5, 6))
-        zone = f"{int(fields[3])}{fields[4].strip().upper()}"
-        if not all(map(math.isfinite, (east, north, lat, lon))) or abs(lat) > 90 or abs(lon) > 180:
-            raise ValueError
-    except ValueError:
-        raise ValueError(f"{where}: {Path(name).name!r} is not a VPR name "
-                         "'@UTM_east@UTM_north@UTM_zone_number@UTM_zone_letter@lat@lon@...@.jpg', and there is no "
-                         "positions CSV for its folder") from None
-    return east, north, zone, lat, lon
-
-
 def _from_names(folder: Path, found: list[Path], table: Path) -> PlaceTable:
     try:
         parsed = [vpr_position(p.name, str(p)) for p in found]
     except ValueError as err:
         raise ValueError(f"{err}. Write {table} (header one of {list(HEADERS)}), or name the files the VPR way "
                          "(docs/datasets.md 'Your own data')") from None
-    zone = _one_zone([(z, str(p)) for p, (_, _, z, _, _) in zip(found, parsed)])
-    return PlaceTable(found, "xy", np.asarray([(e, n) for e, n, *_ in parsed], np.float64), zone, folder,
+    zone = one_zone([(z, str(p)) for p, (_, _, z) in zip(found, parsed) if z is not None])
+    return PlaceTable(found, "xy", np.asarray([(e, n) for e, n, _ in parsed], np.float64), zone, folder,
                       [0] * len(found))

@@ -8,10 +8,12 @@ Kinds (a `RetrievalSplit` says which applies to it: `RetrievalSplit.relevance`):
   count as any other reference; only VIGOR's hit rate sets them aside (`Relevance.hit`);
 - ``labels``: every reference with the query's label (University-1652: all images of the building; satellite ->
   drone has about 54 relevant drone images per query). References labelled ``JUNK_LABEL`` count neither way;
-- ``radius``: the query's positive and every reference within ``radius_m`` metres of the query (the VPR
-  convention, 25 m by default).
+- ``radius``: every reference within ``radius_m`` metres of the query (the VPR convention, 25 m by default, as
+  gmberton's VPR-methods-evaluation draws it), and with positives given the query's positive too, whatever its
+  distance. By the radius alone a query may have no relevant reference.
 
-A relevance holds index tables, not scores: ``relevant`` (Q x G, -1 padding, at least one entry per row),
+A relevance holds index tables, not scores: ``relevant`` (Q x G, -1 padding; a row of -1 alone is a query with
+nothing relevant, which the scorer counts as a miss at every K),
 ``semi_positives`` (Q x S, -1 padding, or None), ``ignored_references`` ((N,) bool, or None) and ``ignored``
 (Q x S per query, or None: `hit` sets the semi-positives there). The scorer
 (`geoloc.eval.scoring`) turns them into ranks with one rule: rank_i = #{j not relevant, not ignored :
@@ -76,6 +78,11 @@ class Relevance:
     def num_queries(self) -> int:
         return int(self.relevant.shape[0])
 
+    @property
+    def has_relevant(self) -> torch.Tensor:
+        """(Q,) bool: the queries with at least one relevant reference."""
+        return (self.relevant >= 0).any(dim=1)
+
     @classmethod
     def one_to_one(cls, num_queries: int, num_references: int) -> "Relevance":
         """Query i matches reference i; references past Q are distractors."""
@@ -127,7 +134,8 @@ class Relevance:
     @classmethod
     def within_radius(cls, positives, query_positions, reference_positions, kind: str,
                       radius_m: float = RADIUS_M) -> "Relevance":
-        """Query i's positive and every reference within ``radius_m`` metres of it (inclusive).
+        """Every reference within ``radius_m`` metres of query i (inclusive), and query i's positive when
+        ``positives`` ((Q,) ints) is given; with None the radius alone decides, and a row may be empty.
 
         positions: (Q, 2) and (N, 2) of one kind, "latlon" (degrees) or "xy" (metres); `geoloc.data.geo.distance_m`.
         """
@@ -135,15 +143,16 @@ class Relevance:
             raise ValueError(f"the relevance radius must be a finite number of metres >= 0, got {radius_m}")
         query_positions = np.asarray(query_positions, np.float64)
         reference_positions = np.asarray(reference_positions, np.float64)
-        n_ref = len(reference_positions)
-        pos = index_tensor(positives, "positives", (len(query_positions),), n_ref, allow_none=False)
-        rows = []
+        n_query, n_ref = len(query_positions), len(reference_positions)
+        pos = None if positives is None else index_tensor(positives, "positives", (n_query,), n_ref, allow_none=False)
+        rows = [torch.full((1,), -1)]  # the table is at least one column wide, even when no query has a match
         step = max(1, _DISTANCE_BUDGET // max(1, n_ref))
-        for q0 in range(0, len(query_positions), step):
+        for q0 in range(0, n_query, step):
             near = distance_m(query_positions[q0:q0 + step, None, :], reference_positions[None, :, :], kind) <= radius_m
-            near[np.arange(len(near)), pos[q0:q0 + step].numpy()] = True  # the positive, whatever its distance
+            if pos is not None:
+                near[np.arange(len(near)), pos[q0:q0 + step].numpy()] = True  # the positive, whatever its distance
             rows.extend(torch.from_numpy(np.flatnonzero(row)) for row in near)
-        return cls("radius", pad_sequence(rows, batch_first=True, padding_value=-1), n_ref)
+        return cls("radius", pad_sequence(rows, batch_first=True, padding_value=-1)[1:], n_ref)
 
     def hit(self) -> "Relevance":
         """VIGOR's hit rate as a rank: the positive is the target and its semi-positives count neither way, so

@@ -50,7 +50,9 @@ class RetrievalSplit:
     query is the aerial image and the references are photos: University-1652's satellite -> drone; each image is
     still encoded by its own view's branch).
     relevance_radius_m: None, or the VPR convention: a query's positive and every reference within this many
-    metres of it are relevant (needs positions; `relevance`).
+    metres of it are relevant (needs positions; `relevance`);
+    radius_alone: with relevance_radius_m, the radius alone decides, as gmberton's VPR-methods-evaluation does: the
+    positive is relevant only within it, and a query with no reference that near has nothing relevant.
 
     Tile geometry and where each query lies in its tiles (the seams of metric localisation; docs/datasets.md):
     reference_size_px (N, 2) int (height, width) or None: the pixel frame of each tile as released (VIGOR 640 x 640);
@@ -58,6 +60,7 @@ class RetrievalSplit:
     synthetic renderer's); needs reference_size_px. The tile's extent is reference_extent_m;
     query_tile_px (Q, 2) float (row, col) or None: the query's position in its positive tile, in continuous pixel
     coordinates of that frame ((0, 0) the top-left corner, (H/2, W/2) the tile centre, rows south, columns east);
+    (NaN, NaN) where it is unknown: a test query that no tile shows (own data under the radius rule keeps it);
     query_semi_tile_px (Q, S, 2) float or None: the same in each semi-positive, NaN where semi_positives is -1; a
     position may lie outside its tile (SliceMatch's corrected VIGOR labels: at the true scale some panoramas are not
     in a "semi-positive" tile), and only positions inside a tile are used (semi_inside);
@@ -79,6 +82,7 @@ class RetrievalSplit:
     reference_labels: np.ndarray | None = None
     query_view: str = "panorama"  # panorama | sphere | image | aerial: see above
     relevance_radius_m: float | None = None  # VPR: every reference within this radius is relevant too
+    radius_alone: bool = False  # with relevance_radius_m: the positive is not relevant beyond it
     reference_size_px: np.ndarray | None = None
     reference_metres_per_px: np.ndarray | None = None
     query_tile_px: np.ndarray | None = None
@@ -114,6 +118,8 @@ class RetrievalSplit:
             if self.query_labels is not None:
                 raise ValueError(f"{self._where()}: give labels or relevance_radius_m, not both: each defines "
                                  "which references are relevant")
+        elif self.radius_alone:
+            raise ValueError(f"{self._where()}: radius_alone needs relevance_radius_m, the radius that decides")
         if (self.query_labels is None) != (self.reference_labels is None):
             raise ValueError(f"{self._where()}: give query_labels and reference_labels together, or neither")
         if self.query_labels is not None:
@@ -133,15 +139,15 @@ class RetrievalSplit:
     @cached_property
     def relevance(self) -> Relevance:
         """Which references are relevant to each query, the one definition every metric ranks by: with labels,
-        every reference of the query's label (University-1652); with ``relevance_radius_m``, the positive and
-        every reference within that radius (VPR); otherwise the positive (the one-to-one data, VIGOR), the
-        semi-positives set aside by VIGOR's hit rate only."""
+        every reference of the query's label (University-1652); with ``relevance_radius_m``, every reference
+        within that radius and, unless ``radius_alone``, the positive (VPR); otherwise the positive (the
+        one-to-one data, VIGOR), the semi-positives set aside by VIGOR's hit rate only."""
         if self.query_labels is not None:
             return Relevance.from_labels(self.query_labels, self.reference_labels)
         if self.relevance_radius_m is not None:
             kind, query_positions, reference_positions = self.positions()
-            return Relevance.within_radius(self.positives, query_positions, reference_positions, kind,
-                                           self.relevance_radius_m)
+            return Relevance.within_radius(None if self.radius_alone else self.positives, query_positions,
+                                           reference_positions, kind, self.relevance_radius_m)
         if self.one_to_one:
             return Relevance.one_to_one(self.num_queries, self.num_references)
         return Relevance.from_positives(self.positives, self.num_references, self.semi_positives)
@@ -222,8 +228,8 @@ class RetrievalSplit:
         return self.reference_size_px * self.reference_metres_per_px[:, None]
 
     def query_tile_offset_m(self) -> np.ndarray | None:
-        """(Q, 2) (east, north) metres of each query from its positive tile's centre, or None where the split lacks
-        the query positions or the tiles' scale."""
+        """(Q, 2) (east, north) metres of each query from its positive tile's centre (NaN where query_tile_px is), or
+        None where the split lacks the query positions or the tiles' scale."""
         if self.query_tile_px is None or self.reference_metres_per_px is None:
             return None
         size = self.reference_size_px[self.positives]
@@ -278,7 +284,8 @@ class RetrievalSplit:
 
     def _tile_px(self, key: str, value, shape: tuple, tiles: np.ndarray, inside: bool) -> np.ndarray:
         """(row, col) positions in the given tiles ((Q, S) reference indices, -1 for none): finite (and with
-        `inside`, inside each tile's pixel frame) where a tile is given, NaN where none is."""
+        `inside`, inside each tile's pixel frame) where a tile is given, or (NaN, NaN) where the position is
+        unknown; NaN where no tile is."""
         a = np.asarray(value, np.float64)
         if a.shape != shape:
             raise ValueError(f"{self._where()}: {key} has shape {a.shape}, expected {shape} of (row, col) pixels")
@@ -288,7 +295,7 @@ class RetrievalSplit:
         ok = np.isfinite(a).all(-1)
         if inside:
             ok &= (a >= 0).all(-1) & (a <= frame).all(-1)
-        bad = given & ~ok
+        bad = given & ~ok & ~np.isnan(a).all(-1)
         if bad.any():
             i, j = (int(v) for v in np.argwhere(bad)[0])
             tile = int(tiles[i, j])

@@ -5,15 +5,21 @@
     ROOT/queries.csv        image,lat,lon | image,east_m,north_m[,utm_zone]   (geoloc/data/place_tables.py)
     ROOT/tiles.csv          the same columns: the tile centre
 
-Without a CSV, the folder's file names must carry their position the VPR tools' way
-(`@UTM_east@UTM_north@zone@letter@lat@lon@...@.jpg`). Queries and tiles must use one coordinate system.
+Without a CSV, the folder's file names must carry their position the VPR tools' way (`@UTM_east@UTM_north@.jpg`,
+zone, lat, lon, ... optional: geoloc/data/vpr_names.py). Queries and tiles must use one coordinate system.
 
-Relevance is the VPR convention (geoloc/data/relevance.py, kind ``radius``): a query's positive is its nearest tile,
-and every tile within `radius_m` (25 m) of the query is relevant too.
+A query's positive is its nearest tile (what training pairs it with). Which tiles are relevant, `relevance`:
+- ``radius`` (the default): the tiles within `radius_m` (25 m, inclusive) of the query and nothing else, as gmberton's
+  VPR-methods-evaluation draws them, so recall is comparable with its numbers. A query with no tile that near has
+  nothing to find: a miss at every K, counted in every recall (geoloc/eval/scoring.py);
+- ``nearest_tile``: the positive, whatever its distance, and every tile within `radius_m` too.
 
 Tile geometry: `tile_extent_m` (the ground width a tile covers) or `metres_per_px`; the pixel size comes from each
-tile's header. Each query's position in its positive tile (RetrievalSplit.query_tile_px) follows; a query outside
-its nearest tile is refused (no tile shows it).
+tile's header. Each query's position in its positive tile (RetrievalSplit.query_tile_px) follows. A query outside
+its nearest tile (no tile shows it) is refused under ``nearest_tile``, and by split=train under either rule, as a
+training pair needs a tile that shows its query. Under ``radius`` split=test and split=all keep it, as the
+reference keeps every query: its position in a tile is unknown (NaN), and the fine-grained metrics skip it and say
+how many they skip (geoloc/tasks/crossview/refine.py).
 
 Splits are by area, never at random: the tile centres are projected on `split_axis` (east or north, metres in a
 local frame), and the tiles beyond the (1 - test_fraction) quantile form the test area; a query belongs to the
@@ -31,9 +37,11 @@ from geoloc.data.geo import distance_m, latlon_to_offset
 from geoloc.data.place_tables import PlaceTable, read_places
 from geoloc.data.relevance import RADIUS_M
 from geoloc.data.retrieval_split import RetrievalSplit
+from geoloc.data.utm_zones import same_frame
 from geoloc.registry import register
 
 SPLITS = ("train", "test", "all")
+RELEVANCE_RULES = ("radius", "nearest_tile")
 AXES = ("east", "north")
 QUERY_VIEWS = ("panorama", "sphere", "image")
 QUERY_DIR, TILE_DIR = "queries", "tiles"
@@ -79,17 +87,17 @@ def test_area(east_north: np.ndarray, axis: str, fraction: float) -> tuple[np.nd
     return coordinate >= line, line
 
 
-def folder_split(root, split: str = "test", tile_extent_m: float | None = None, metres_per_px: float | None = None,
-                 radius_m: float = RADIUS_M, split_axis: str = "east", test_fraction: float = 0.25,
-                 query_view: str = "panorama") -> RetrievalSplit:
+def folder_split(root, split: str, tile_extent_m: float | None, metres_per_px: float | None, radius_m: float,
+                 relevance: str, split_axis: str, test_fraction: float, query_view: str) -> RetrievalSplit:
+    """The split of the module docstring; the keys as `folder` takes them, defaults there."""
     root = Path(root)
-    _check_keys(split, tile_extent_m, metres_per_px, split_axis, test_fraction, query_view)
+    _check_keys(split, tile_extent_m, metres_per_px, radius_m, relevance, split_axis, test_fraction, query_view)
     queries = read_places(root / QUERY_DIR, root / f"{QUERY_DIR}.csv")
     tiles = read_places(root / TILE_DIR, root / f"{TILE_DIR}.csv")
     if queries.kind != tiles.kind:
         raise ValueError(f"{queries.source} gives {_system_name(queries.kind)} and {tiles.source} gives "
                          f"{_system_name(tiles.kind)}: give both in one coordinate system")
-    if queries.zone and tiles.zone and queries.zone != tiles.zone:
+    if queries.zone and tiles.zone and not same_frame(queries.zone, tiles.zone):
         raise ValueError(f"{queries.source} is in UTM zone {queries.zone} and {tiles.source} in {tiles.zone}: give "
                          "both in one zone, or as lat,lon")
     kind = tiles.kind
@@ -117,27 +125,38 @@ def folder_split(root, split: str = "test", tile_extent_m: float | None = None, 
     row = size[positives, 0] / 2 - offset[:, 1] / scale[positives]
     col = size[positives, 1] / 2 + offset[:, 0] / scale[positives]
     outside = (row < 0) | (row > size[positives, 0]) | (col < 0) | (col > size[positives, 1])
-    if outside.any():
+    if outside.any() and (relevance == "nearest_tile" or split == "train"):
         i = int(np.flatnonzero(outside)[0])
         extent = size[positives[i]] * scale[positives[i]]
+        why = (" split=train pairs each query with a tile that shows it (split=test and split=all keep such a "
+               "query under relevance=radius).") if relevance == "radius" else ""
         raise ValueError(f"{queries.where(int(chosen[i]))}: query {queries.paths[chosen[i]]} lies {metres[i]:.1f} m "
                          f"from its nearest tile's centre ({tiles.paths[tile_index[positives[i]]]}), outside that "
                          f"tile ({extent[1]:.1f} x {extent[0]:.1f} m): no tile shows it ({int(outside.sum())} such "
-                         "queries). Add tiles covering it, remove it, or check tile_extent_m / metres_per_px")
+                         f"queries).{why} Add tiles covering it, remove it, or check tile_extent_m / metres_per_px")
+    tile_px = np.column_stack([row, col])
+    tile_px[outside] = np.nan  # no tile shows the query: its position in a tile is unknown
     where = {f"query_{kind}": query_pos, f"reference_{kind}": tile_pos}
     return RetrievalSplit(name=name, root=root, queries=[queries.paths[i] for i in chosen],
                           references=[tiles.paths[i] for i in tile_index], positives=positives,
-                          query_view=query_view, relevance_radius_m=float(radius_m), reference_size_px=size,
-                          reference_metres_per_px=scale, query_tile_px=np.column_stack([row, col]), **where)
+                          query_view=query_view, relevance_radius_m=float(radius_m),
+                          radius_alone=relevance == "radius", reference_size_px=size, reference_metres_per_px=scale,
+                          query_tile_px=tile_px, **where)
 
 
 def _system_name(kind: str) -> str:
     return "lat,lon (degrees)" if kind == "latlon" else "east_m,north_m (metres)"
 
 
-def _check_keys(split, tile_extent_m, metres_per_px, split_axis, test_fraction, query_view) -> None:
+def _check_keys(split, tile_extent_m, metres_per_px, radius_m, relevance, split_axis, test_fraction,
+                query_view) -> None:
     if split not in SPLITS:
         raise ConfigError(f"dataset=folder: split must be one of {list(SPLITS)}, got {split!r}")
+    if relevance not in RELEVANCE_RULES:
+        raise ConfigError(f"dataset=folder: relevance must be one of {list(RELEVANCE_RULES)} (radius: the tiles "
+                          f"within radius_m alone; nearest_tile: the nearest tile too), got {relevance!r}")
+    if not np.isfinite(radius_m) or radius_m < 0:
+        raise ConfigError(f"dataset=folder: radius_m must be a finite number of metres >= 0, got {radius_m}")
     if (tile_extent_m is None) == (metres_per_px is None):
         raise ConfigError("dataset=folder needs the tiles' ground scale, one of dataset.tile_extent_m (the metres a "
                           "tile's width covers) or dataset.metres_per_px, not both; "
@@ -156,11 +175,12 @@ def _check_keys(split, tile_extent_m, metres_per_px, split_axis, test_fraction, 
 
 @register("dataset", "folder")
 def folder(root: str | None, split: str, tile_extent_m: float | None = None, metres_per_px: float | None = None,
-           radius_m: float = RADIUS_M, split_axis: str = "east", test_fraction: float = 0.25,
-           query_view: str = "panorama") -> RetrievalSplit:
-    """Your own street images and aerial tiles (module docstring); split = train | test (by area) | all."""
+           radius_m: float = RADIUS_M, relevance: str = "radius", split_axis: str = "east",
+           test_fraction: float = 0.25, query_view: str = "panorama") -> RetrievalSplit:
+    """Your own street images and aerial tiles (module docstring); split = train | test (by area) | all;
+    relevance = radius (the tiles within radius_m alone) | nearest_tile (the nearest tile too)."""
     if not root:
         raise ConfigError("dataset=folder needs dataset.root=DIR holding queries/ and tiles/ (docs/datasets.md "
                           "'Your own data')")
     return folder_split(root, "test" if split == "val" else split, tile_extent_m, metres_per_px, radius_m,
-                        split_axis, test_fraction, query_view)
+                        relevance, split_axis, test_fraction, query_view)

@@ -42,14 +42,15 @@ AP_KEYS = KeySet({"AP": 0.0})
 
 def average_precision(relevant_ranks: torch.Tensor) -> dict[str, float]:
     """{"AP": the mean over queries of the trapezoid AP} of (Q, G) 0-based ranks of each query's relevant
-    references, ascending, -1 padding (`scoring.Ranking.relevant_ranks`)."""
+    references, ascending, -1 padding (`scoring.Ranking.relevant_ranks`); a query with no relevant reference
+    scores 0 and counts in the mean."""
     valid = relevant_ranks >= 0
     at = relevant_ranks.double().clamp(min=0)  # padding: any rank, masked below
     i = torch.arange(1, relevant_ranks.shape[1] + 1, dtype=torch.float64)[None, :]  # the i-th relevant (1-based)
     precision = i / (at + 1)
     old_precision = torch.where(at > 0, (i - 1) / at.clamp(min=1), torch.ones_like(at))
     terms = torch.where(valid, (old_precision + precision) / 2, torch.zeros_like(at))
-    per_query = terms.sum(dim=1) / valid.sum(dim=1)
+    per_query = terms.sum(dim=1) / valid.sum(dim=1).clamp(min=1)
     return AP_KEYS.values({"AP": per_query.mean()})
 
 

@@ -8,6 +8,7 @@ pairs; localize gets one such list per candidate heading. These lists are ranked
 - a query none of whose relevant references was returned counts every returned reference against it (rank >= k,
   and no hit), unless ``target_scores`` gives its exact target (what the FAISS flat backend of `recall_at_k`
   does, so that ties at the k-th score count as in the full ranking);
+- a query with no relevant reference at all is NO_RELEVANT, past every K, and no hit, as in the full ranking;
 - lists are ordered best first, the lower row first among equal scores (`ordered`);
 - per-heading lists merge into one by each row's best score over the headings (`merge_headings`), which is the
   max over K of `scoring`: a row of the overall top-k is in the top-k of its best heading.
@@ -18,7 +19,7 @@ from __future__ import annotations
 import torch
 
 from geoloc.data.relevance import Relevance
-from geoloc.eval.scoring import Ranking
+from geoloc.eval.scoring import NO_RELEVANT, Ranking
 
 __all__ = ["merge_headings", "ordered", "rank_candidates"]
 
@@ -62,11 +63,13 @@ def rank_candidates(scores: torch.Tensor, rows: torch.Tensor, relevance: Relevan
     junk = (torch.zeros(rows.shape, dtype=torch.bool) if relevance.ignored_references is None else
             relevance.ignored_references[rows.clamp(min=0)] & (rows >= 0))
     ignored = junk | _member(rows, relevance.ignored)
-    out = Ranking(_counts(scores, rows, relevant, relevant | ignored, target_scores),
+    found = relevance.has_relevant
+    out = Ranking(_counts(scores, rows, relevant, relevant | ignored, target_scores).masked_fill(~found, NO_RELEVANT),
                   torch.zeros(rows.shape[0], dtype=torch.long), top_scores=scores, top_rows=rows)
     if hits:
         hit = relevance.hit()
-        out.hits = _counts(scores, rows, relevant, relevant | junk | _member(rows, hit.ignored), target_scores) == 0
+        counts = _counts(scores, rows, relevant, relevant | junk | _member(rows, hit.ignored), target_scores)
+        out.hits = (counts == 0) & found
     return out
 
 

@@ -32,14 +32,20 @@ E2E_KEYS = KeySet({"e2e_median_m": float("inf"), **{f"e2e_within_{t}m": 0.0 for 
 
 
 def fine_summary(errors_m) -> dict[str, float]:
-    """FINE_KEYS of (Q,) metre errors with the positive tile given."""
+    """FINE_KEYS of (Q,) metre errors with the positive tile given; with no error (no query's position in its
+    tile is known), every key at its worst."""
+    if np.asarray(errors_m).shape == (0,):
+        return dict(FINE_KEYS.worst)
     e = checked_errors(errors_m, "fine errors")
     return FINE_KEYS.values({"fine_mean_m": e.mean(), "fine_median_m": np.median(e),
                              **shares_within(e, FINE_THRESHOLDS_M, "fine_")})
 
 
 def whole_tile_summary(errors_m, truth_fraction) -> dict[str, float]:
-    """WHOLE_TILE_KEYS of (P,) metre errors of query-tile pairs whose truths lie at the (P, 2) tile fractions."""
+    """WHOLE_TILE_KEYS of (P,) metre errors of query-tile pairs whose truths lie at the (P, 2) tile fractions; with
+    no pair, every key at its worst."""
+    if np.asarray(errors_m).shape == (0,):
+        return dict(WHOLE_TILE_KEYS.worst)
     e = checked_errors(errors_m, "whole-tile errors")
     f = np.asarray(truth_fraction, np.float64)
     edge = ((f < EDGE_FRACTION) | (f > 1 - EDGE_FRACTION)).any(1)

@@ -12,7 +12,10 @@ s_ij = max_k <q_ik, r_j>.
 
     rank_i = #{j not in R_i or I_i : s_ij > t_i},   t_i = max_{g in R_i} s_ig,
 
-so a tie counts in the query's favour. The same count against other targets gives the rest:
+so a tie counts in the query's favour. A query with no relevant reference (R_i empty: the radius rule alone) has
+nothing to find: its rank is NO_RELEVANT, past every K, so it is a miss at every K and still counts in every
+mean (gmberton's VPR-methods-evaluation counts such a query the same way), and it has no hit, no relevant
+position and no best candidate (-1). The same count against other targets gives the rest:
 - VIGOR's hit (`Relevance.hit`): target s_{i,p_i}, the semi-positives ignored; hit_i <=> count = 0;
 - AP: each relevant g's count of the non-relevant references above s_ig gives its position in the ranking.
 Each target is the row-wise product sum(q_i * r_g) (max over K first), compared with the block products
@@ -38,8 +41,10 @@ import torch
 from geoloc.data.relevance import Relevance
 from geoloc.eval.descriptors import checked_pair
 
-__all__ = ["QUERY_CHUNK", "SCORE_BUDGET", "Ranking", "check_chunk", "rank", "relevant_scores", "top_k"]
+__all__ = ["NO_RELEVANT", "QUERY_CHUNK", "SCORE_BUDGET", "Ranking", "check_chunk", "rank", "relevant_scores",
+           "top_k"]
 
+NO_RELEVANT = torch.iinfo(torch.long).max  # the rank of a query with no relevant reference: past every K
 QUERY_CHUNK = 1024
 SCORE_BUDGET = 1 << 25  # scores in one query chunk x reference block
 COMPARE_TARGETS = 4  # up to this many targets per query are counted by comparison, more by one sort per block
@@ -144,8 +149,9 @@ def _merge_top(best: tuple[torch.Tensor, torch.Tensor] | None, block: tuple[torc
 class Ranking:
     """What one pass of the stream found, on the CPU (Q queries, N references).
 
-    ranks (Q,): the rank rule against the best relevant reference;
-    best_candidate (Q,): for Q x K x D queries, the candidate k scoring that reference highest (0 otherwise);
+    ranks (Q,): the rank rule against the best relevant reference (NO_RELEVANT for a query without one);
+    best_candidate (Q,): for Q x K x D queries, the candidate k scoring that reference highest (0 otherwise; -1
+    for a query without a relevant reference);
     hits (Q,) bool or None: VIGOR's hit (`Relevance.hit`), asked with ``hits=True``;
     relevant_ranks (Q, G) or None: 0-based positions of every relevant reference, ascending, -1 padding
     (``every_relevant=True``);
@@ -216,10 +222,11 @@ def rank(query, reference, relevance: Relevance | None, hits: bool = False, ever
                 vals, cols = _block_top(scores, top)
                 best_top = _merge_top(best_top, (vals, cols + r0), top)
         if counts is not None:
-            out.ranks[q0:q0 + c] = counts[:, 0].cpu()
-            out.best_candidate[q0:q0 + c] = each_k.gather(1, arg)[:, 0].cpu()
+            found = relevance.has_relevant[q0:q0 + c]
+            out.ranks[q0:q0 + c] = counts[:, 0].cpu().masked_fill(~found, NO_RELEVANT)
+            out.best_candidate[q0:q0 + c] = each_k.gather(1, arg)[:, 0].cpu().masked_fill(~found, -1)
         if beaten is not None:
-            out.hits[q0:q0 + c] = (beaten[:, 0] == 0).cpu()
+            out.hits[q0:q0 + c] = (beaten[:, 0] == 0).cpu() & found
         if every_relevant and counts is not None:
             every.append(_positions(counts[:, 1:].cpu(), (relevant >= 0).cpu()))
         if top:

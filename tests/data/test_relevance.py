@@ -49,6 +49,11 @@ def test_the_radius_kind_takes_the_positive_and_every_reference_within_it(kind):
     on_the_edge = split(1, 2, positives=np.array([0]), relevance_radius_m=25.0, query_xy=np.zeros((1, 2)),
                         reference_xy=np.array([[0.0, 0.0], [15.0, 20.0]]))
     assert rows(on_the_edge.relevance) == [[0, 1]]  # exactly 25 m counts
+    alone = split(2, 5, positives=np.array([3, 4]), relevance_radius_m=25.0, radius_alone=True, **positions)
+    assert alone.relevance.kind == "radius" and rows(alone.relevance) == [[0, 1, 2], [4]]  # not the positive at 26 m
+    far = split(2, 2, positives=np.array([0, 1]), relevance_radius_m=25.0, radius_alone=True,
+                query_xy=np.array([[0.0, 0.0], [0.0, 60.0]]), reference_xy=np.array([[0.0, 25.0], [0.0, 25.1]]))
+    assert rows(far.relevance) == [[0], []] and far.relevance.has_relevant.tolist() == [True, False]
 
 
 @pytest.mark.parametrize("kw,match", [
@@ -56,6 +61,7 @@ def test_the_radius_kind_takes_the_positive_and_every_reference_within_it(kind):
     (dict(relevance_radius_m=-1.0, query_xy=np.zeros((4, 2)), reference_xy=np.zeros((6, 2))), "radius >= 0"),
     (dict(relevance_radius_m=25.0, query_xy=np.zeros((4, 2)), reference_xy=np.zeros((6, 2)),
           query_labels=np.zeros(4, int), reference_labels=np.zeros(6, int)), "labels or relevance_radius_m"),
+    (dict(radius_alone=True), "radius_alone needs relevance_radius_m"),
 ])
 def test_a_bad_radius_is_refused(kw, match):
     with pytest.raises(ValueError, match=match):

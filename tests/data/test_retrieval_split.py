@@ -88,6 +88,8 @@ def test_tile_geometry_and_query_positions():
     np.testing.assert_allclose(s.query_tile_offset_m(), [[0, 0], [8, 16], [-6, 11]])
     assert _tiles(reference_metres_per_px=None).query_tile_offset_m() is None
     assert _tiles(reference_metres_per_px=None).reference_extent_m is None
+    unknown = _tiles(query_tile_px=[[32, 16], [np.nan, np.nan], [10, 4]])  # a query no tile shows
+    assert np.isnan(unknown.query_tile_offset_m()[1]).all() and unknown.query_tile_offset_m()[2].tolist() == [-6, 11]
 
 
 @pytest.mark.parametrize("kw, match", [
@@ -101,7 +103,7 @@ def test_tile_geometry_and_query_positions():
                                                         r"tile 1 \(r1\) of \[64, 32\] pixels"),
     (dict(query_tile_px=[[32, 16], [0, 32], [np.nan, 4]]), "query_tile_px of query 2"),
     (dict(query_tile_px=[[32, 16], [0, 32]]), r"query_tile_px has shape \(2, 2\), expected \(3, 2\)"),
-    (dict(query_semi_tile_px=[[[1, 2]], [[3, -4]], [[5, 6]]]), "query_semi_tile_px of query 1"),
+    (dict(query_semi_tile_px=[[[1, 2]], [[3, np.inf]], [[5, 6]]]), "query_semi_tile_px of query 1 .* not a finite"),
     (dict(semi_positives=None), "query_semi_tile_px needs semi_positives"),
 ])
 def test_bad_tile_geometry_is_refused(kw, match):

@@ -1,5 +1,6 @@
 """dataset=folder (your own data): positives, radius relevance, tile positions and the area split against brute force;
-VPR file names; every refusal names the file, the line and what to do."""
+VPR file names; relevance and recall against VPR-methods-evaluation's rules (helpers/vpr_reference.py); every
+refusal names the file, the line and what to do."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from geoloc.data.geo import haversine_m, offset_to_latlon
 from geoloc.datasets.folder import folder
 
 from helpers.own_data import ORIGIN, grid, positions_csv, write_folder
+from helpers.vpr_reference import reference_east_north, reference_positives, reference_recalls
 
 TILES = grid(4, 3, 50.0)  # 12 tiles, 50 m apart
 QUERIES = TILES[[0, 1, 2, 3, 5, 6, 9, 11]] + np.array(
@@ -83,6 +85,25 @@ def test_vpr_file_names_need_no_csv_and_one_utm_zone(own):
         folder(str(own), "all", tile_extent_m=40.0)
 
 
+def name_as(own, side, names):
+    (own / f"{side}.csv").unlink(missing_ok=True)
+    for old, new in zip(sorted((own / side).iterdir()), names):
+        old.rename(own / side / new)
+
+
+def test_minimal_vpr_names_read_and_zones_must_share_a_frame(own):
+    name_as(own, "queries", [f"@{500000 + e:.2f}@{5400000 + n:.2f}@.jpg" for e, n in QUERIES])  # no zone
+    name_as(own, "tiles", [vpr_name(*p, letter="T" if i % 2 else "U", k=i) for i, p in enumerate(TILES)])
+    split = folder(str(own), "all", tile_extent_m=45.0)  # 32T and 32U: one zone, two latitude bands
+    read = split.query_xy[np.lexsort(split.query_xy.T)]  # files in name order; compare as sets of positions
+    want = QUERIES + [500000, 5400000]
+    assert np.allclose(read, want[np.lexsort(want.T)]) and split.num_references == len(TILES)
+    first = sorted((own / "queries").iterdir())[0]
+    first.rename(first.with_name(first.name.replace("@.jpg", "@33@@.jpg")))
+    with pytest.raises(ValueError, match=r"queries is in UTM zone 33 and .*tiles in 32[TU]: give both in one zone"):
+        folder(str(own), "all", tile_extent_m=45.0)
+
+
 def write_table(own, side, text):
     (own / f"{side}.csv").write_text(text)
 
@@ -125,8 +146,72 @@ def test_mixed_systems_missing_scale_and_a_query_outside_every_tile_are_refused(
     write_table(own, "queries", positions_csv(names, far))
     with pytest.raises(ValueError, match=r"queries.csv:6: query .*q004.png lies 22.0 m from its nearest tile's "
                                          r"centre .*t005.png\), outside that tile \(30.0 x 30.0 m\)"):
-        folder(str(own), "all", tile_extent_m=30.0)
-    assert folder(str(own), "all", tile_extent_m=45.0).num_queries == len(QUERIES)
+        folder(str(own), "all", tile_extent_m=30.0, relevance="nearest_tile")  # that rule keeps today's refusal
+    assert folder(str(own), "all", tile_extent_m=45.0, relevance="nearest_tile").num_queries == len(QUERIES)
+    with pytest.raises(ConfigError, match=r"relevance must be one of \['radius', 'nearest_tile'\].*got 'nearest'"):
+        folder(str(own), "all", tile_extent_m=45.0, relevance="nearest")
+    with pytest.raises(ConfigError, match="radius_m must be a finite number of metres >= 0, got -1"):
+        folder(str(own), "all", tile_extent_m=45.0, radius_m=-1)
+
+
+def test_the_radius_rule_keeps_a_test_query_no_tile_shows_and_training_refuses_it(own):
+    far = QUERIES.copy()
+    far[4] = TILES[5] + [22.0, 0.0]  # outside its 30 m tile, 22 m from its centre: in the training area
+    far[7] = TILES[11] + [0.0, 40.0]  # outside its tile and 40 m from it, past the radius: in the test area
+    write_table(own, "queries", positions_csv([f"q{i:03d}.png" for i in range(len(QUERIES))], far))
+    whole = folder(str(own), "all", tile_extent_m=30.0)
+    assert whole.num_queries == len(QUERIES) and np.isnan(whole.query_tile_px[[4, 7]]).all()
+    assert not np.isnan(np.delete(whole.query_tile_px, [4, 7], axis=0)).any()
+    relevant = [sorted(r[r >= 0].tolist()) for r in whole.relevance.relevant]
+    assert relevant[4] == [5] and relevant[7] == []  # 22 m: its tile; nothing within 25 m of the other
+    test = folder(str(own), "test", tile_extent_m=30.0)
+    kept = [q.name for q in test.queries].index("q007.png")
+    assert np.isnan(test.query_tile_px[kept]).all() and not test.relevance.has_relevant[kept]
+    with pytest.raises(ValueError, match=r"q004.png lies 22.0 m .*no tile shows it \(1 such queries\). split=train "
+                                         r"pairs each query with a tile that shows it"):
+        folder(str(own), "train", tile_extent_m=30.0)
+
+
+def test_under_the_default_config_a_tile_24_9_m_away_is_relevant_and_one_25_1_m_away_is_not(tmp_path):
+    from conftest import compose_train
+    from helpers.crossview_runs import split_of
+
+    tiles = np.array([[24.9, 0.0], [0.0, -25.1], [-90.0, 0.0], [90.0, 0.0]])
+    root = write_folder(tmp_path / "own", tiles, np.array([[0.0, 0.0], [90.0, 5.0]]), aerial=20, system="xy")
+    cfg = compose_train(["dataset=folder", f"dataset.root={root}", "dataset.tile_extent_m=60"])
+    split = split_of(cfg.dataset, "all")  # no radius and no relevance given: the defaults decide
+    assert [sorted(r[r >= 0].tolist()) for r in split.relevance.relevant] == [[0], [3]]
+    assert split.positives.tolist() == [0, 3]
+    far = write_folder(tmp_path / "far", tiles[1:], np.array([[0.0, 0.0]]), aerial=20, system="xy")
+    alone = split_of({**cfg.dataset, "root": str(far)}, "all")  # its nearest tile is 25.1 m away
+    assert alone.positives.tolist() == [0] and not alone.relevance.has_relevant.any()
+
+
+def test_recall_agrees_with_the_reference_where_some_queries_have_no_tile_within_25_m(tmp_path):
+    from geoloc.eval.retrieval_metrics import split_metrics
+
+    queries = np.concatenate([TILES[:6] + [[3, -4], [-20, 12], [24, 7], [0, 25], [-9, -9], [17, 18]],
+                              TILES[6:] + [[0, 26], [30, 0], [-25.5, 0], [18, 18], [40, 40], [1, 1]]])
+    root = tmp_path / "own"
+    write_folder(root, TILES, queries, aerial=20)
+    for side, positions in (("queries", queries), ("tiles", TILES)):  # VPR names, which the reference reads too
+        name_as(root, side, [f"@{500000 + e:.3f}@{5400000 + n:.3f}@.jpg" for e, n in positions])
+    split = folder(str(root), "all", tile_extent_m=80.0)
+    utm = [np.array([reference_east_north(str(p)) for p in paths]) for paths in (split.queries, split.references)]
+    positives = reference_positives(*utm)
+    assert sum(not p for p in positives) >= 4 and sum(len(p) > 1 for p in positives) >= 1  # misses, and neighbours
+    rng = np.random.default_rng(0)
+    reference = rng.normal(size=(len(TILES), 16))
+    query = reference[[min(p) if p else 0 for p in positives]] + 2.0 * rng.normal(size=(len(queries), 16))
+    query, reference = (x / np.linalg.norm(x, axis=1, keepdims=True) for x in (query, reference))
+    ks = (1, 2, 5, 12, 20)  # K = N and K > N: a query with no positive is still a miss
+    got = split_metrics(query, reference, split, ks)
+    want = reference_recalls(query, reference, positives, ks)
+    assert {k: got[k] for k in want} == pytest.approx(want, abs=1e-12)
+    found_at_all = np.mean([bool(p) for p in positives])  # the queries with a positive: R@K's ceiling
+    assert got["R@20"] == pytest.approx(found_at_all) and 0.0 < got["R@1"] < found_at_all < 1.0
+    nearest = folder(str(root), "all", tile_extent_m=80.0, relevance="nearest_tile")  # every query finds a tile
+    assert split_metrics(query, reference, nearest, ks)["R@20"] == 1.0
 
 
 def test_the_reader_is_registered_with_its_keys(own):

@@ -17,6 +17,7 @@ from geoloc.eval.retrieval_metrics import index_metrics, split_metrics, split_pl
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
 
 from helpers.descriptor_data import labelled_data, vigor_like_data
+from helpers.vpr_reference import reference_recalls
 
 
 def splits() -> dict[str, tuple[RetrievalSplit, torch.Tensor, torch.Tensor]]:
@@ -41,6 +42,10 @@ def splits() -> dict[str, tuple[RetrievalSplit, torch.Tensor, torch.Tensor]]:
         "radius": (RetrievalSplit("vpr", "/d", names(20, "q"), names(20, "r"), np.arange(20) // 2 * 2,
                                   query_xy=xy, reference_xy=xy + 3.0, relevance_radius_m=25.0),
                    pairs_query, pairs_ref),
+        # the radius alone: the queries past 215 m east have no reference within 25 m
+        "radius_alone": (RetrievalSplit("own", "/d", names(20, "q"), names(20, "r"), np.minimum(np.arange(20) * 3, 19),
+                                        query_xy=xy * 3, reference_xy=xy + [0.0, 3.0], relevance_radius_m=25.0,
+                                        radius_alone=True), pairs_query, pairs_ref),
     }
 
 
@@ -49,6 +54,7 @@ EXPECTED = {
     "vigor": ["R@1", "R@5", "R@10", "R@1%", "hit_rate", "median_m", "within_10m", "within_25m", "within_50m"],
     "labels": ["R@1", "R@5", "R@10", "R@1%", "AP"],
     "radius": ["R@1", "R@5", "R@10", "R@1%", "median_m", "within_10m", "within_25m", "within_50m"],
+    "radius_alone": ["R@1", "R@5", "R@10", "R@1%", "median_m", "within_10m", "within_25m", "within_50m"],
 }
 
 
@@ -82,6 +88,24 @@ def test_a_gallery_index_reports_its_plan(kind, index_kind):
     assert ("AP" in got) == (kind == "labels" and index_kind == "flat")
     if index_kind == "flat":
         assert got == split_metrics(query, reference, split)
+
+
+@pytest.mark.parametrize("index_kind", ["flat", "hnsw"])
+def test_a_gallery_counts_a_query_with_nothing_relevant_as_a_miss(index_kind):
+    """The saved-gallery path against VPR-methods-evaluation's recall (helpers/vpr_reference.py), exact or from an
+    approximate index's top-k lists."""
+    if index_kind != "flat":
+        pytest.importorskip("faiss")
+    split, query, reference = splits()["radius_alone"]
+    relevant = [{int(j) for j in row if j >= 0} for row in split.relevance.relevant]
+    assert 0 < sum(not r for r in relevant) < 20  # both kinds of query
+    index = GalleryIndex(reference.shape[1], backend="torch" if index_kind == "flat" else "faiss",
+                         kind=index_kind).add(reference)
+    ks = (1, 5, 10, 20)
+    want = reference_recalls(query.numpy(), reference.numpy(), relevant, ks)
+    got = index_metrics(index, query, split, ks)
+    assert {k: got[k] for k in want} == pytest.approx(want, abs=1e-12)
+    assert want["R@20"] == pytest.approx(np.mean([bool(r) for r in relevant]))
 
 
 def test_the_heading_search_declares_its_keys():

@@ -4,6 +4,8 @@ candidates per query, any blocking, candidate lists, and the one-to-one ranks ex
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -11,13 +13,18 @@ import torch.nn.functional as F
 from geoloc.data.geo import distance_m, offset_to_latlon
 from geoloc.data.relevance import Relevance
 from geoloc.eval import scoring
+from geoloc.eval.average_precision import average_precision
 from geoloc.eval.candidates import merge_headings, rank_candidates
+from geoloc.eval.recall import recall_summary
 from geoloc.eval.scoring import rank, relevant_scores, top_k
+from geoloc.tasks.crossview.heading import heading_metrics
+from geoloc.tasks.crossview.views import circular_error_deg
 
 from helpers.ranking import one_to_one_ranks_before, ranks_of
 
 # (query chunk, score budget): one block; 3 queries x 5 references; one query x 3 references
 BLOCKINGS = [(None, 1 << 25), (3, 15), (1, 3)]
+RADIUS_ALONE_M = 12.0  # small enough that some queries have no reference this near
 
 
 def exact_rows(n: int, d: int = 8, seed: int = 0) -> torch.Tensor:
@@ -44,13 +51,15 @@ def loop_counts(relevance: Relevance, i: int, target: float, relevant: set[int],
 
 
 def loop_rank(relevance: Relevance, hit: bool = False) -> list[int]:
-    """rank_i = #{j not relevant, not ignored : s_ij > max relevant s_ig}, one reference at a time."""
+    """rank_i = #{j not relevant, not ignored : s_ij > max relevant s_ig}, one reference at a time; a query with
+    nothing relevant is past every K."""
     junk = set() if relevance.ignored_references is None else set(np.flatnonzero(relevance.ignored_references))
     out = []
     for i in range(SCORES.shape[0]):
         relevant = members(relevance.relevant, i)
         ignored = junk | (members(relevance.semi_positives, i) if hit else set())
-        out.append(loop_counts(relevance, i, max(SCORES[i, g] for g in relevant), relevant, ignored))
+        out.append(loop_counts(relevance, i, max(SCORES[i, g] for g in relevant), relevant, ignored)
+                   if relevant else scoring.NO_RELEVANT)
     return out
 
 
@@ -87,6 +96,7 @@ def relevances() -> dict[str, Relevance]:
         "labels": Relevance.from_labels(x["query_labels"], x["reference_labels"]),
         "radius_xy": Relevance.within_radius(x["positives"], x["query_xy"], x["reference_xy"], "xy", 25.0),
         "radius_latlon": Relevance.within_radius(x["positives"], *latlon, "latlon", 25.0),
+        "radius_alone": Relevance.within_radius(None, x["query_xy"], x["reference_xy"], "xy", RADIUS_ALONE_M),
     }
 
 
@@ -98,7 +108,7 @@ def test_the_data_hold_ties_and_spread():
     assert any(SCORES[i, j] == SCORES[i, i] for i in range(23) for j in range(37) if j != i)
 
 
-@pytest.mark.parametrize("kind", ["one_to_one", "positives", "labels", "radius_xy", "radius_latlon"])
+@pytest.mark.parametrize("kind", ["one_to_one", "positives", "labels", "radius_xy", "radius_latlon", "radius_alone"])
 @pytest.mark.parametrize("chunk,budget", BLOCKINGS)
 @pytest.mark.parametrize("compare_targets", [0, 100])  # every target counted by the sort, or by comparison
 def test_one_rank_rule_for_every_relevance_kind(monkeypatch, kind, chunk, budget, compare_targets):
@@ -129,6 +139,8 @@ def test_relevance_sets_are_what_each_kind_says():
         near = {j for j in range(37) if distance_m(x["query_xy"][i], x["reference_xy"][j], "xy") <= 25.0}
         assert members(rel["radius_xy"].relevant, i) == near | {int(x["positives"][i])}
         assert members(rel["radius_latlon"].relevant, i) == members(rel["radius_xy"].relevant, i)
+        near = {j for j in range(37) if distance_m(x["query_xy"][i], x["reference_xy"][j], "xy") <= RADIUS_ALONE_M}
+        assert members(rel["radius_alone"].relevant, i) == near
     assert rel["labels"].ignored_references.nonzero().flatten().tolist() == [6, 11]
     assert max(len(members(rel["radius_xy"].relevant, i)) for i in range(23)) > 2  # several per query
     assert rel["positives"].semi_positives is not None and rel["labels"].semi_positives is None
@@ -227,3 +239,61 @@ def test_bad_inputs_are_named():
         rank(QUERY, REFERENCE, relevances()["labels"], hits=True)
     with pytest.raises(ValueError, match="chunk_size must be >= 1"):
         rank(QUERY, REFERENCE, relevances()["labels"], chunk_size=-2)
+
+
+def reference_recall(relevance: Relevance, k: int) -> float:
+    """VPR-methods-evaluation's recall, rewritten: a query is found at K when one of its relevant references is among
+    its K best (ties ordered in the query's favour), and the share is over every query, those with nothing
+    relevant included."""
+    found = 0
+    for i in range(SCORES.shape[0]):
+        relevant = members(relevance.relevant, i)
+        ranking = sorted(range(SCORES.shape[1]), key=lambda j: (-SCORES[i, j], j not in relevant))
+        found += any(j in relevant for j in ranking[:k])
+    return found / SCORES.shape[0]
+
+
+def test_a_query_with_nothing_relevant_is_a_miss_at_every_k_on_every_path():
+    relevance = relevances()["radius_alone"]
+    empty = ~relevance.has_relevant
+    assert 0 < int(empty.sum()) < 23 and relevance.relevant.shape[1] > 1  # both kinds of query, several matches
+    ks = (1, 5, 10, 37, 50)  # K = N and K > N: an empty row is still a miss
+    full = rank(QUERY, REFERENCE, relevance, every_relevant=True)
+    want = {f"R@{k}": reference_recall(relevance, k) for k in ks} | {"R@1%": reference_recall(relevance, 1)}
+    assert recall_summary(full.ranks, ks, 37) == pytest.approx(want, abs=1e-12)
+    assert want["R@50"] == pytest.approx(1 - float(empty.double().mean()))
+    for k in (1, 4, 37):  # candidate lists: with the exact targets (the FAISS flat backend's), and whole lists
+        scores, rows = top_k(QUERY, REFERENCE, k)
+        for targets in (None, relevant_scores(QUERY, REFERENCE, relevance)):
+            listed = rank_candidates(scores, rows, relevance, target_scores=targets)
+            assert (listed.ranks[empty] == scoring.NO_RELEVANT).all()
+            if targets is not None or k == 37:  # a shorter list alone misses a relevant one tied at its end
+                assert recall_summary(listed.ranks, (k,), 37)[f"R@{k}"] == pytest.approx(reference_recall(relevance, k))
+    kept = average_precision(full.relevant_ranks[~empty])["AP"]  # AP: an empty row scores 0 and counts
+    assert average_precision(full.relevant_ranks)["AP"] == pytest.approx(kept * int((~empty).sum()) / 23)
+    semi = replace(relevance, semi_positives=torch.full((23, 1), 3))  # the hit rate: never a hit
+    assert not rank(QUERY, REFERENCE, semi, hits=True).hits[empty].any()
+    assert not rank_candidates(*top_k(QUERY, REFERENCE, 37), semi, hits=True).hits[empty].any()
+
+
+def test_a_query_with_nothing_relevant_has_no_heading():
+    candidates = torch.stack([exact_rows(23, seed=s) for s in (5, 6, 7)], dim=1)  # Q x K x D, headings 0/120/240
+    scores = np.einsum("qkd,nd->qkn", candidates.numpy(), REFERENCE.numpy())
+    relevance = relevances()["radius_alone"]
+    found = rank(candidates, REFERENCE, relevance)
+    truth = np.random.default_rng(0).uniform(0, 360, 23)
+    errors = []
+    for i in range(23):
+        relevant = members(relevance.relevant, i)
+        if not relevant:
+            assert found.best_candidate[i] == -1
+            continue
+        g_star = min(relevant, key=lambda g: (-scores[i, :, g].max(), g))
+        errors.append(circular_error_deg(120.0 * np.argmax(scores[i, :, g_star]), truth[i]))
+    metrics = heading_metrics(candidates, REFERENCE, truth, relevance=relevance)
+    assert metrics["heading_mean_deg"] == pytest.approx(np.mean(errors))
+    assert metrics["heading_median_deg"] == pytest.approx(np.median(errors))
+    nothing = Relevance.within_radius(None, np.zeros((23, 2)), np.full((37, 2), 100.0), "xy", 25.0)
+    assert nothing.relevant.shape == (23, 1) and not nothing.has_relevant.any()
+    worst = heading_metrics(candidates, REFERENCE, truth, relevance=nothing)
+    assert worst["R@1"] == 0.0 and worst["heading_mean_deg"] == 180.0

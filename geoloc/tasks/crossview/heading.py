@@ -8,7 +8,8 @@ aligned: `query_inputs`, geometry in views.py), giving q_ik. With references r_j
   keeps retrieval a single-vector search (DSM, Shi et al. CVPR 2020, correlates feature maps instead);
 - rank(i) = #{j != p_i : score(i, j) > score(i, p_i)} (ties in the query's favour: the one rank rule);
 - the heading estimate for the true pair is h_k* with k* = argmax_k <q_ik, r_{p_i}> (the first k on ties), and
-  its error is the circular distance to the true heading, in [0, 180] degrees.
+  its error is the circular distance to the true heading, in [0, 180] degrees. A query with no relevant
+  reference (own data under the radius rule) has no true pair: it counts in the recall, not in the heading.
 """
 
 from __future__ import annotations
@@ -78,8 +79,12 @@ def heading_metrics(query: torch.Tensor, reference: torch.Tensor, true_heading, 
     truth = np.asarray(torch.as_tensor(true_heading).double().cpu())
     if truth.shape != (query.shape[0],):
         raise ValueError(f"true_heading must be ({query.shape[0]},) degrees, got shape {truth.shape}")
-    error = circular_error_deg(candidate_headings(query.shape[1])[found.best_candidate.numpy()], truth)
+    candidate = found.best_candidate.numpy()
+    paired = candidate >= 0  # a query with nothing relevant has no true pair to read a heading from
     out = recall_summary(found.ranks, ks, reference.shape[0])
+    if not paired.any():
+        return {**out, **HEADING_KEYS.worst}
+    error = circular_error_deg(candidate_headings(query.shape[1])[candidate[paired]], truth[paired])
     out.update(HEADING_KEYS.values({
         "heading_median_deg": np.median(error), "heading_mean_deg": error.mean(),
         **{f"heading_within_{limit}deg": (error <= limit).mean() for limit in HEADING_WITHIN_DEG}}))

@@ -16,6 +16,7 @@ before it is matched, so one refiner meets tiles of any ground extent at the sca
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
@@ -37,6 +38,7 @@ from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, 
 STAGES = ("refine", "joint")
 METRE_LABELS = "metre_labels"  # the metrics' key that names the label set behind their metres (tile_labels)
 RADIUS_M = 5.0  # the refined answer's confidence is P(error <= RADIUS_M) (confidence.py's "within_5m")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -276,7 +278,9 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
     position, heading, _ = refined(refiner, refine, query_maps, reference_maps, rows, split.positives, candidates,
                                    split)
     if FINE_KEYS in plan:
-        out.update(fine_summary(pair_errors_m(position.numpy(), split, rows, split.positives)), **labels_of(split))
+        shown = shown_queries(split)
+        errors = pair_errors_m(position.numpy(), split, rows, split.positives)[shown]
+        out.update(fine_summary(errors), **labels_of(split))
     if WHOLE_TILE_KEYS in plan:
         answers = whole_tile_answers(refiner, refine, split, candidates, query_maps, reference_maps)
         out.update(whole_tile_summary(answers.error_m, answers.truth))
@@ -305,11 +309,12 @@ class TileAnswers(NamedTuple):
 
 def whole_tile_answers(refiner, refine: RefineConfig, split: RetrievalSplit, candidates: torch.Tensor,
                        query_maps: torch.Tensor, reference_maps: torch.Tensor, queries=None) -> TileAnswers:
-    """Each of `queries` (default all) refined in every tile that holds it (tile_pairs). What the "within_5m"
-    confidence is fitted on and scored against (confidence.py), and the whole-tile metres."""
+    """Each of `queries` (default: every query a tile shows, `shown_queries`) refined in every tile that holds it
+    (tile_pairs). What the "within_5m" confidence is fitted on and scored against (confidence.py), and the
+    whole-tile metres."""
     if split.reference_metres_per_px is None:
         raise ValueError(f"{split.name}: its tiles have no metres per pixel, so a metre error has no meaning")
-    rows, tiles = tile_pairs(split, True, queries)
+    rows, tiles = tile_pairs(split, True, np.flatnonzero(shown_queries(split)) if queries is None else queries)
     position, _, mass = refined(refiner, refine, query_maps, reference_maps, rows, tiles, candidates, split)
     truth = np.stack([truth_fraction(split, int(q), int(t)) for q, t in zip(rows, tiles)])
     return TileAnswers(mass.double().numpy(), fraction_error_m(position.numpy(), truth, split, tiles), truth,
@@ -320,6 +325,19 @@ def pair_errors_m(position: np.ndarray, split: RetrievalSplit, queries, tiles) -
     """(P,) metres between the (P, 2) refined tile fractions of queries[p] in tiles[p] and their truths."""
     truth = np.stack([truth_fraction(split, int(q), int(t)) for q, t in zip(queries, tiles)])
     return fraction_error_m(position, truth, split, tiles)
+
+
+def shown_queries(split: RetrievalSplit) -> np.ndarray:
+    """(Q,) bool: the queries whose position in their positive tile is known. A test query that no tile shows
+    (own data under the radius rule keeps it, its query_tile_px NaN) has no fine-grained error: the fine-grained
+    metrics skip it, and a warning says how many they skip."""
+    if split.query_tile_px is None:
+        return np.ones(split.num_queries, bool)
+    shown = ~np.isnan(split.query_tile_px).any(axis=1)
+    if not shown.all():
+        log.warning("%s: %d of %d queries lie in no tile, so their position in a tile is unknown: the fine-grained "
+                    "metrics (fine_*) skip them", split.name, int((~shown).sum()), split.num_queries)
+    return shown
 
 
 def fraction_error_m(estimate: np.ndarray, truth: np.ndarray, split: RetrievalSplit, tiles) -> np.ndarray:

@@ -112,3 +112,50 @@ def test_the_refined_heading_error_wraps_around_north():
                        torch.ones(1, 2) / 2 ** 0.5, torch.ones(1, 2) / 2 ** 0.5)
     assert out["fine_heading_median_deg"] == pytest.approx(20.0)
     assert out["fine_median_m"] == pytest.approx(0.0, abs=1e-6)
+
+
+class FixedAnswers:
+    """A refiner stand-in whose answer for each pair is the first two entries of its query map (a tile fraction)."""
+
+    def match(self, query_maps, reference_maps, candidates):
+        class Answer:
+            def position(self):
+                return query_maps[:, :2]
+
+            def heading(self):
+                return torch.zeros(len(query_maps))
+
+            def mass_within(self, radius, extent):
+                return torch.full((len(query_maps),), 0.5)
+
+        return Answer()
+
+
+def test_the_fine_metrics_skip_a_query_no_tile_shows_and_say_how_many(caplog):
+    from geoloc.tasks.crossview.refine import fine_metrics, whole_tile_answers
+
+    split = RetrievalSplit("own", "/r", ["q0", "q1", "q2"], ["t0", "t1"], positives=np.array([0, 1, 1]),
+                           query_xy=[[1.0, 2.0], [50.0, 0.0], [120.0, 0.0]], reference_xy=[[0.0, 0.0], [50.0, 0.0]],
+                           relevance_radius_m=25.0, radius_alone=True, reference_size_px=[[40, 40]] * 2,
+                           reference_metres_per_px=[1.0, 1.0], query_tile_px=[[18.0, 21.0], [20.0, 20.0],
+                                                                              [np.nan, np.nan]])
+    assert np.isnan(split.query_tile_offset_m()[2]).all() and split.query_tile_offset_m()[0] == pytest.approx([1, 2])
+    answers = torch.tensor([[0.5, 0.5], [0.5, 0.75], [0.1, 0.1]])  # 2.2 m and 10 m off; the third has no truth
+    maps = torch.cat([answers, torch.zeros(3, 2)], dim=1)
+    descriptors = torch.eye(3, 4), torch.eye(2, 4)
+    with caplog.at_level("WARNING"):
+        out = fine_metrics(FixedAnswers(), split, RefineConfig(), torch.zeros(1), maps, torch.zeros(2, 4),
+                           torch.zeros(3), *descriptors)
+    errors = [np.hypot(1.0, 2.0), 10.0]
+    assert out["fine_mean_m"] == pytest.approx(np.mean(errors)) and out["fine_within_3m"] == 0.5
+    assert "own: 1 of 3 queries lie in no tile" in caplog.text and "fine_*" in caplog.text
+    assert out["e2e_within_100m"] == pytest.approx(2 / 3)  # end to end every query counts: its position is known
+    mass, error, _, _ = whole_tile_answers(FixedAnswers(), RefineConfig(), split, torch.zeros(1), maps,
+                                           torch.zeros(2, 4))
+    assert error == pytest.approx(errors) and mass.shape == (2,)
+    nowhere = RetrievalSplit("own", "/r", ["q2"], ["t0", "t1"], positives=np.array([1]), query_xy=[[120.0, 0.0]],
+                             reference_xy=[[0.0, 0.0], [50.0, 0.0]], reference_size_px=[[40, 40]] * 2,
+                             reference_metres_per_px=[1.0, 1.0], query_tile_px=[[np.nan, np.nan]])
+    worst = fine_metrics(FixedAnswers(), nowhere, RefineConfig(), torch.zeros(1), maps[2:], torch.zeros(2, 4),
+                         torch.zeros(1), descriptors[0][2:], descriptors[1])
+    assert worst["fine_mean_m"] == float("inf") and worst["fine_within_1m"] == 0.0

@@ -141,7 +141,7 @@ def folder_split(root, split: str, tile_extent_m: float | None, metres_per_px: f
                           references=[tiles.paths[i] for i in tile_index], positives=positives,
                           query_view=query_view, relevance_radius_m=float(radius_m),
                           radius_alone=relevance == "radius", reference_size_px=size, reference_metres_per_px=scale,
-                          query_tile_px=tile_px, **where)
+                          query_tile_px=tile_px, tile_labels="positions", **where)
 
 
 def _system_name(kind: str) -> str:

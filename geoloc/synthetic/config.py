@@ -153,6 +153,10 @@ PRESETS = {
     # sizes and test sets, six / eight times the training places (the small ones over-fit within a few epochs)
     "vigor_medium": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
                          world_margin=2.0, cities=4, grid=8, train=384, val=32),
+    # vigor_medium's world and training panoramas with 512 test panoramas a city (vigor_medium's 128 are its first):
+    # the refiner's whole-tile calibration, fitted on vigor_medium's held-out training panoramas, scored on >= 2,000
+    "vigor_medium_2k": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
+                            world_margin=2.0, cities=4, grid=8, train=384, val=512),
     # VIGOR cross-area's larger training world (docs/datasets.md): vigor_medium's tile and image sizes, each city 16 x 16
     # tiles (4x the tiles and 3.0x the area of vigor_medium's 8 x 8) with 768 training panoramas (3 per tile)
     "vigor_large": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,

@@ -38,11 +38,13 @@ def _block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> list[nn
             nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
 
 
-def encoder(width: int, channels: int) -> nn.Sequential:
-    """3 x S x S -> channels x S/2 x S/2, receptive field 29 pixels (one stride-2 stage, then dilated context)."""
+def encoder(width: int, channels: int, context: int = 0) -> nn.Sequential:
+    """3 x S x S -> channels x S/2 x S/2, receptive field 29 pixels (one stride-2 stage, then dilated context), and
+    32, 64, ... more with each of `context` further blocks of dilation 8, 16, ..."""
+    more = [layer for k in range(context) for layer in _block(2 * width, 2 * width, dilation=8 * 2 ** k)]
     return nn.Sequential(*_block(3, width), *_block(width, 2 * width, stride=2), *_block(2 * width, 2 * width),
                          *_block(2 * width, 2 * width, dilation=2), *_block(2 * width, 2 * width, dilation=4),
-                         nn.Conv2d(2 * width, channels, 1))
+                         *more, nn.Conv2d(2 * width, channels, 1))
 
 
 OVERLAP = ("mean", "window")
@@ -120,17 +122,17 @@ class CorrelationRefiner(nn.Module):
     """Two unshared small encoders (query: the aligned street image, reference: the tile) and a correlation."""
 
     def __init__(self, channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
-                 scale: float = 20.0, overlap: str = "mean"):
+                 scale: float = 20.0, overlap: str = "mean", context: int = 0):
         super().__init__()
-        if channels < 1 or width < 1 or heading_bins < 1 or not 0.0 < kernel_frac <= 1.0 or scale <= 0:
+        if channels < 1 or width < 1 or heading_bins < 1 or not 0.0 < kernel_frac <= 1.0 or scale <= 0 or context < 0:
             raise ValueError(f"refiner correlation: channels, width, heading_bins must be >= 1, kernel_frac in (0, 1] "
-                             f"and scale > 0; got channels={channels}, width={width}, heading_bins={heading_bins}, "
-                             f"kernel_frac={kernel_frac}, scale={scale}")
+                             f"scale > 0 and context >= 0; got channels={channels}, width={width}, heading_bins="
+                             f"{heading_bins}, kernel_frac={kernel_frac}, scale={scale}, context={context}")
         if overlap not in OVERLAP:
             raise ValueError(f"refiner correlation: overlap must be one of {OVERLAP}, got {overlap!r}")
         self.kernel_frac, self.heading_bins, self.overlap = kernel_frac, heading_bins, overlap
-        self.query_encoder = encoder(width, channels)
-        self.reference_encoder = encoder(width, channels)
+        self.query_encoder = encoder(width, channels, context)
+        self.reference_encoder = encoder(width, channels, context)
         self.log_scale = nn.Parameter(torch.tensor(math.log(scale)))
 
     def encode_query(self, images: torch.Tensor) -> torch.Tensor:
@@ -159,9 +161,9 @@ class CorrelationRefiner(nn.Module):
 
 @register("refiner", "correlation")
 def correlation(channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
-                scale: float = 20.0, overlap: str = "mean") -> CorrelationRefiner:
+                scale: float = 20.0, overlap: str = "mean", context: int = 0) -> CorrelationRefiner:
     """channels: matched feature channels; width: the encoders' first width; kernel_frac: the share of the query
     map's side that is matched; heading_bins: candidate headings 360 k / K when the heading is unknown; scale: the
     initial logit scale of a mean cosine (learnt); overlap: mean over the window's cells on the tile, or over the
-    whole window (module docstring)."""
-    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale, overlap)
+    whole window (module docstring); context: further dilated blocks that widen the encoders' receptive field."""
+    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale, overlap, context)

@@ -53,11 +53,9 @@ class RefineConfig:
     semi_positives: bool = False
     size: int = 0  # the side in pixels the refiner reads the aligned query and the tile at; 0: dataset.aerial_size
     # the ground metres the aligned query stands for: a tile of extent E is matched with the query's map drawn
-    # query_extent_m / E times larger (the ground scale as an input); 0: every tile as it is
+    # query_extent_m / E times larger (the ground scale as an input); 0: every tile as it is (docs/localisation.md
+    # measures both)
     query_extent_m: float = 0.0
-    # training: each tile cut to a random share in [1 - X, 1] of its side (the truth kept inside) and resized, so the
-    # refiner meets ground scales it was not rendered at; needs query_extent_m
-    scale_jitter: float = 0.0
 
     def __post_init__(self):
         if self.stage not in STAGES:
@@ -70,10 +68,6 @@ class RefineConfig:
         if not (np.isfinite(self.query_extent_m) and self.query_extent_m >= 0):
             raise ValueError(f"refiner.query_extent_m must be a number of metres >= 0 (0: no scale input), got "
                              f"{self.query_extent_m}")
-        if not 0.0 <= self.scale_jitter < 0.5 or (self.scale_jitter > 0 and not self.query_extent_m):
-            raise ValueError(f"refiner.scale_jitter must lie in [0, 0.5) and needs refiner.query_extent_m > 0 (the "
-                             f"refiner must know each tile's scale); got scale_jitter={self.scale_jitter}, "
-                             f"query_extent_m={self.query_extent_m}")
 
     def side(self, aerial_size: int) -> int:
         return self.size or aerial_size
@@ -177,30 +171,14 @@ def turned_fraction(frac: np.ndarray, quarter_turns: int, flip: bool) -> np.ndar
     return np.array([row, col])
 
 
-def jittered_tile(aerial: np.ndarray, frac: np.ndarray, jitter: float,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
-    """The tile cut to a random share in [1 - jitter, 1] of its side, placed at random with the truth inside ->
-    (the cut, the truth's fraction in it, the share kept)."""
-    h, w = aerial.shape[:2]
-    side = max(2, int(round(rng.uniform(1.0 - jitter, 1.0) * min(h, w))))
-    start = []
-    for f, size in zip(frac, (h, w)):
-        at = f * size  # the truth in pixels; the cut [s, s + side) keeps it inside
-        low, high = max(0, int(np.ceil(at - side))), min(size - side, int(np.floor(at)))
-        start.append(int(rng.integers(low, high + 1)) if high >= low else min(max(0, int(at - side / 2)), size - side))
-    r0, c0 = start
-    cut = aerial[r0:r0 + side, c0:c0 + side]
-    return cut, np.array([(frac[0] * h - r0) / side, (frac[1] * w - c0) / side]), side / min(h, w)
-
-
 def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refine: RefineConfig,
                 rng: np.random.Generator | None) -> dict:
     """A training (rng given) or test item for the refiner: the query seen at a heading off north (drawn, or fixed
     per query for tests), the tile (the positive, or with semi_positives any tile holding the query), the truth.
 
     -> {"street": the view (H x W x 3, for the retrieval inputs), "aerial": the tile as turned, "refine_query",
-    "refine_reference": 3 x s x s (cut with scale_jitter), "tile_px": (2,) tile fraction, "refine_heading": degrees
-    in [0, 360), "refine_extent_m": (2,) metres the refiner's tile covers (NaN where the split has no scale)}."""
+    "refine_reference": 3 x s x s, "tile_px": (2,) tile fraction, "refine_heading": degrees in [0, 360),
+    "refine_extent_m": (2,) metres the tile covers (NaN where the split has no scale)}."""
     _, tiles = tile_pairs(split, refine.semi_positives and rng is not None, [index])
     tile = int(tiles[int(rng.integers(len(tiles)))]) if len(tiles) > 1 else int(tiles[0])
     frac = truth_fraction(split, index, tile)
@@ -211,10 +189,6 @@ def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refi
         frac = turned_fraction(frac, turns, flip)
     extent = (np.full(2, np.nan) if split.reference_extent_m is None
               else split.reference_extent_m[tile].astype(np.float64))
-    tile_image = aerial
-    if rng is not None and refine.scale_jitter > 0:
-        tile_image, frac, share = jittered_tile(aerial, frac, refine.scale_jitter, rng)
-        extent = extent * share
     noise = refine.orientation_noise_deg
     offset = (float(rng.uniform(-noise, noise)) if noise > 0 else 0.0) if rng is not None else eval_offset(index, noise)
     view = crop_view(street, 360.0, offset) if offset else street
@@ -222,7 +196,7 @@ def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refi
     small = replace(cfg, aerial_size=side)
     return {"street": view, "aerial": aerial,
             "refine_query": to_tensor(align_query(view, small, split.query_view)),
-            "refine_reference": to_tensor(resize(tile_image, (side, side))),
+            "refine_reference": to_tensor(resize(aerial, (side, side))),
             "tile_px": torch.tensor(frac, dtype=torch.float32), "refine_heading": offset % 360.0,
             "refine_extent_m": torch.tensor(extent, dtype=torch.float32)}
 

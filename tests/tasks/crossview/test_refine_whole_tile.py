@@ -1,6 +1,5 @@
 """The refiner over the whole tile: which query-tile pairs hold the truth, the whole-tile summary against brute force,
-the scale jitter's cut (the truth stays on the same ground), the ground scale as an input, and the old checkpoints'
-window normalisation kept."""
+the ground scale as an input, and the old checkpoints' window normalisation kept."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ import torch
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import whole_tile_summary
 from geoloc.tasks.crossview.legacy import with_refiner_overlap
-from geoloc.tasks.crossview.refine import RefineConfig, jittered_tile, tile_pairs, truth_fraction
+from geoloc.tasks.crossview.refine import RefineConfig, tile_pairs, truth_fraction
 from omegaconf import OmegaConf
 
 
@@ -49,29 +48,12 @@ def test_the_whole_tile_summary_is_its_brute_force():
     assert np.isnan(nowhere["whole_tile_edge_median_m"]) and nowhere["whole_tile_centre_median_m"] == 1.5
 
 
-@pytest.mark.parametrize("frac", [(0.5, 0.5), (0.02, 0.97), (0.99, 0.01)])
-def test_the_jittered_cut_keeps_the_truth_on_its_ground(frac):
-    """A marked pixel at the truth is where the cut's fraction says, for truths at the centre and at the edges."""
-    rng = np.random.default_rng(3)
-    for _ in range(20):
-        tile = np.zeros((80, 80, 3), np.uint8)
-        row, col = int(frac[0] * 80), int(frac[1] * 80)
-        tile[row, col] = 255
-        truth = np.array([(row + 0.5) / 80, (col + 0.5) / 80])
-        cut, inside, share = jittered_tile(tile, truth, 0.2, rng)
-        assert cut.shape[0] == cut.shape[1] == round(share * 80) and 0.8 - 1e-9 <= share <= 1.0
-        r, c = np.argwhere(cut[..., 0] == 255)[0]
-        assert inside == pytest.approx([(r + 0.5) / cut.shape[0], (c + 0.5) / cut.shape[1]])
-
-
 def test_the_ground_scale_is_an_input_only_where_asked():
     assert RefineConfig().query_scale([[64.52, 64.52]]) is None
     scale = RefineConfig(query_extent_m=72.96).query_scale([[64.52, 64.52], [75.61, 75.61]])
     assert scale.tolist() == pytest.approx([72.96 / 64.52, 72.96 / 75.61])
     with pytest.raises(ValueError, match="no metres per pixel"):
         RefineConfig(query_extent_m=72.96).query_scale([[np.nan, np.nan]])
-    with pytest.raises(ValueError, match="scale_jitter .* needs refiner.query_extent_m"):
-        RefineConfig(scale_jitter=0.1)
     with pytest.raises(ValueError, match="query_extent_m must be a number of metres >= 0"):
         RefineConfig(query_extent_m=-1.0)
 

@@ -42,6 +42,7 @@ import torch
 
 from geoloc.eval.candidates import ordered
 from geoloc.eval.descriptors import as_float_tensor, unit_rows
+from geoloc.eval.index_structure import check_structure
 from geoloc.eval.scoring import SCORE_BUDGET, top_k
 
 __all__ = ["GalleryIndex", "import_faiss"]
@@ -369,8 +370,9 @@ class GalleryIndex:
         """Load a saved gallery; the torch backend goes to ``device`` (default: the CPU). A FAISS index is
         memory-mapped read-only from its file where FAISS can (`mmap`; the codes of flat, PQ, SQ and refine
         indexes): pages are read as searches touch them, and such an index cannot grow (load with mmap=False to
-        add or merge into it). A missing file raises FileNotFoundError; a truncated, corrupt or foreign one
-        ValueError naming the file."""
+        add or merge into it). A missing file raises FileNotFoundError; a truncated, corrupt or foreign one, or
+        one whose FAISS parts disagree (index_structure.py: checked without reading the codes), ValueError naming
+        the file."""
         path = Path(path)
         buf = io.BytesIO(path.read_bytes())
         try:
@@ -385,10 +387,10 @@ class GalleryIndex:
                         chunk_size=state["chunk_size"], **state["params"])
             if index.backend == "faiss":
                 faiss = import_faiss()
-                index._index = _read_faiss(faiss, path, state, mmap)
+                expected, index._index = index._index, _read_faiss(faiss, path, state, mmap)
                 index._mapped = mmap and "faiss_file" in state
-                if index._index.d != index.dim:
-                    raise ValueError(f"its FAISS index has dimension {index._index.d}, its record {index.dim}")
+                blob = path.with_name(state.get("faiss_file", path.name))  # older records hold the index inside
+                check_structure(faiss, index._index, expected, index.dim, blob)
                 _set_search_knobs(faiss, index.kind, index._index, index.params)
             elif state["descriptors"] is not None:
                 index.add(state["descriptors"])

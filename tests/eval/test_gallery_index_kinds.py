@@ -247,3 +247,33 @@ def test_a_memory_mapped_index_refuses_to_change_instead_of_aborting(easy, tmp_p
     assert len(mapped.search(query, 3)[1]) == len(query)
     writable.merge(GalleryIndex.load(tmp_path / "gallery.pt", mmap=False))
     assert len(writable) == 2 * len(reference) and len(writable.trained_empty()) == 0
+
+
+@pytest.mark.parametrize("kind, part", [("pq_sq8", "outer"), ("pq_sq8", "base_index"), ("pq_refine", "outer"),
+                                        ("ivfpq_refine", "base_index"), ("ivfpq", "outer")])
+def test_an_index_whose_parts_disagree_is_refused_when_it_is_opened(easy, tmp_path, kind, part):
+    """An outer index counting other rows than the parts it wraps opened, then every search raised FAISS's
+    RuntimeError (a 500 on every request of a service that had started cleanly)."""
+    from geoloc.eval.index_structure import index_parts
+
+    _, reference = easy
+    index = GalleryIndex(DIM, backend="faiss", kind=kind, **SMALL).add(reference[:600])
+    index_parts(faiss, index._index)[part].ntotal -= 10
+    index.save(tmp_path / "gallery.pt")
+    with pytest.raises(ValueError, match=rf"the gallery index {tmp_path / 'gallery.pt'} is corrupt .*"
+                                         rf"{tmp_path / 'gallery.faiss'} holds a FAISS index whose parts disagree: "
+                                         rf"its record gives dimension {DIM} and the outer index holds"):
+        GalleryIndex.load(tmp_path / "gallery.pt")
+
+
+def test_an_index_file_of_another_kind_is_refused_when_it_is_opened(easy, tmp_path):
+    _, reference = easy
+    GalleryIndex(DIM, backend="faiss", kind="pq_sq8", **SMALL).add(reference[:600]).save(tmp_path / "gallery.pt")
+    GalleryIndex(DIM, backend="faiss", kind="flat").add(reference[:600]).save(tmp_path / "flat.pt")
+    state = torch.load(tmp_path / "gallery.pt", weights_only=True)
+    (tmp_path / "flat.faiss").replace(tmp_path / "gallery.faiss")
+    torch.save({**state, "faiss_bytes": (tmp_path / "gallery.faiss").stat().st_size}, tmp_path / "gallery.pt")
+    with pytest.raises(ValueError, match=r"gallery.faiss holds a FAISS index of parts \{'outer': 'IndexFlatIP'\}, "
+                                         r"where its record's kind has \{'outer': 'IndexRefine', 'base_index': "
+                                         r"'IndexPQFastScan', 'refine_index': 'IndexScalarQuantizer'\}"):
+        GalleryIndex.load(tmp_path / "gallery.pt")

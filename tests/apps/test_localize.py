@@ -253,10 +253,11 @@ def test_a_gallery_saved_with_a_relative_root_keeps_the_truth_from_another_folde
     assert answer["truth"]["row"] == 1 and answer["truth"]["reference"] == "bingmap/19/0000014.jpg"
 
 
-@pytest.mark.parametrize("damage", ["other_weights", "short_references"])
+@pytest.mark.parametrize("damage", ["other_weights", "short_references", "calibration_targets_a_list"])
 def test_geoloc_serve_refuses_a_gallery_it_cannot_trust_before_serving(gallery, tmp_path, monkeypatch, capsys,
                                                                         damage):
-    """A references.jsonl shorter than the index used to pass /health, then answer 500 IndexError."""
+    """A references.jsonl shorter than the index used to pass /health, then answer 500 IndexError; a
+    calibration.json whose targets are a list stopped the start with a raw AttributeError naming no file."""
     import uvicorn
     from geoloc import cli
 
@@ -267,6 +268,9 @@ def test_geoloc_serve_refuses_a_gallery_it_cannot_trust_before_serving(gallery, 
         info = json.loads((other / "gallery.json").read_text())
         (other / "gallery.json").write_text(json.dumps({**info, "model_fingerprint": "0" * 64}))
         says = f"gallery in {other} was built with other weights"
+    elif damage == "calibration_targets_a_list":
+        (other / "calibration.json").write_text(json.dumps({"calibrated": False, "why": "x", "targets": [1, 2]}))
+        says = f'{other / "calibration.json"} holds "targets" as a JSON list'
     else:
         lines = (other / "references.jsonl").read_text().splitlines()
         (other / "references.jsonl").write_text("\n".join(lines[:-2]) + "\n")

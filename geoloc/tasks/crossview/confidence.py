@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from geoloc.data.relevance import Relevance
-from geoloc.eval.calibration import (Calibrator, coverage_accuracy, expected_calibration_error, fit_calibrator,
-                                     retrieval_features)
+from geoloc.eval.calibration import (RETRIEVAL_FEATURES, Calibrator, coverage_accuracy, expected_calibration_error,
+                                     fit_calibrator, retrieval_features)
 from geoloc.eval.candidates import rank_candidates
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.eval.scoring import rank
@@ -36,6 +36,7 @@ from geoloc.eval.scoring import rank
 TOP1 = "top1"
 WITHIN_5M = "within_5m"
 REFINE_FEATURES = ("mass_5m_logit",)
+TARGET_FEATURES = {TOP1: RETRIEVAL_FEATURES, WITHIN_5M: REFINE_FEATURES}  # the features computed for each target
 MASS_CLIP = 1e-6  # a mass of exactly 0 or 1 has infinite log-odds
 NO_HOLDOUT = ("no labelled queries were kept out of training (the checkpoint was trained with "
               "dataset.calibration_holdout=0): train with dataset.calibration_holdout=N (e.g. a quarter of the train "
@@ -111,6 +112,31 @@ def with_refiner(record: dict, fitted: Calibrator | str) -> dict:
     if isinstance(fitted, str):
         return {**record, "refiner_why": fitted}
     return {**record, "targets": {**record.get("targets", {}), WITHIN_5M: fitted.to_json()}}
+
+
+def check_record(record) -> dict:
+    """A calibration.json record, checked against what the code computes before anything is scored with it: a
+    JSON object whose "calibrated" is a bool, whose "targets" (where present) map each target geoloc computes to a
+    calibrator of that target's features (TARGET_FEATURES), the top-1 among them when "calibrated". A ValueError
+    says what is wrong, as a phrase that follows the file's name."""
+    if not isinstance(record, dict) or not isinstance(record.get("calibrated"), bool):
+        raise ValueError('holds no calibration record ({"calibrated": true, "targets": {...}} or {"calibrated": '
+                         'false, "why": ...})')
+    targets = record.get("targets", {})
+    if not isinstance(targets, dict):
+        raise ValueError(f'holds "targets" as a JSON {type(targets).__name__}, not an object of calibrators by '
+                         f"target ({', '.join(TARGET_FEATURES)})")
+    if record["calibrated"] and TOP1 not in targets:
+        raise ValueError(f'says "calibrated": true but holds no {TOP1!r} target')
+    for target, entry in targets.items():
+        if target not in TARGET_FEATURES:
+            raise ValueError(f"holds a target {target!r}, which geoloc does not compute ({', '.join(TARGET_FEATURES)})")
+        calibrator = Calibrator.from_json(entry, f"holds a target {target!r} that")
+        if calibrator.target != target or calibrator.features != TARGET_FEATURES[target]:
+            raise ValueError(f"holds a target {target!r} fitted as {calibrator.target!r} on the features "
+                             f"{list(calibrator.features)}, where geoloc computes {list(TARGET_FEATURES[target])} "
+                             "for it")
+    return record
 
 
 def calibrators(record: dict | None) -> dict[str, Calibrator]:

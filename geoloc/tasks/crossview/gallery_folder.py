@@ -43,6 +43,7 @@ from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine.checkpoint import file_sha256, umask
 from geoloc.eval.gallery import GalleryIndex, faiss_file
+from geoloc.tasks.crossview.confidence import check_record
 from geoloc.tasks.crossview.places import Places, read_places, split_record, write_places
 
 INFO, INDEX, CALIBRATION = "gallery.json", "gallery.pt", "calibration.json"
@@ -274,7 +275,7 @@ def open_codebook(folder: str | Path, fingerprint: str, ckpt, split: RetrievalSp
 
 
 def read_calibration(folder: Path) -> dict | None:
-    """calibration.json of `folder` as a dict holding "calibrated" (a bool), or None when there is none."""
+    """calibration.json of `folder`, checked (confidence.check_record), or None when there is none."""
     path = folder / CALIBRATION
     if not path.is_file():
         return None
@@ -282,8 +283,7 @@ def read_calibration(folder: Path) -> dict | None:
         record = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ConfigError(f"{path} is not complete JSON ({err})") from None
-    if not isinstance(record, dict) or not isinstance(record.get("calibrated"), bool) or (
-            record["calibrated"] and not isinstance(record.get("targets"), dict)):
-        raise ConfigError(f"{path} holds no calibration record ({{\"calibrated\": true, \"targets\": {{...}}}} or "
-                          "{\"calibrated\": false, \"why\": ...})")
-    return record
+    try:
+        return check_record(record)
+    except ValueError as err:
+        raise ConfigError(f"{path} {err}") from None

@@ -15,6 +15,7 @@ from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval import recall_at_k
 from geoloc.tasks.crossview import gallery_folder, open_gallery
 
+from helpers.calibrated import KNOWN
 from helpers.gallery_runs import META, gallery_evaluate, pairs_split
 
 
@@ -153,6 +154,10 @@ def drop_line(path, keep):
     path.write_text("\n".join(keep(lines)) + "\n")
 
 
+def write_calibration(folder, record):
+    (folder / "calibration.json").write_text(json.dumps(record))
+
+
 DAMAGE = {  # what is done to a good gallery -> (the file named, what the message says)
     "gallery.pt truncated": (lambda g: cut(g / "gallery.pt"), "gallery.pt", "truncated, corrupt"),
     "gallery.pt of another gallery": (
@@ -170,6 +175,25 @@ DAMAGE = {  # what is done to a good gallery -> (the file named, what the messag
     "references.jsonl no path": (lambda g: drop_line(g / "references.jsonl", lambda x: ['{"p": 1}'] + x[1:]),
                                  "references.jsonl", 'line 1: no "path"'),
     "queries.jsonl cut line": (lambda g: cut(g / "queries.jsonl", 0.5), "queries.jsonl", "is not JSON"),
+    # a calibration.json that loaded and then failed every request with a heading (500), or failed the service's
+    # start with a raw AttributeError naming no file
+    "calibration.json targets a list": (lambda g: write_calibration(g, {"calibrated": False, "targets": [1, 2]}),
+                                        "calibration.json", r'holds "targets" as a JSON list'),
+    "calibration.json feature count": (
+        lambda g: write_calibration(g, {"calibrated": True, "targets": {"top1": {**KNOWN.to_json(), "features": [
+            "top1_score"], "mean": [0.0], "scale": [1.0], "weights": [4.0]}}}),
+        "calibration.json", r"fitted as 'top1' on the features \['top1_score'\], where geoloc computes "
+                            r"\['top1_score', 'top1_margin'\]"),
+    "calibration.json refiner feature count": (
+        lambda g: write_calibration(g, {"calibrated": False, "targets": {"within_5m": {**KNOWN.to_json(),
+                                                                                       "target": "within_5m"}}}),
+        "calibration.json", r"where geoloc computes \['mass_5m_logit'\]"),
+    "calibration.json target not a record": (
+        lambda g: write_calibration(g, {"calibrated": True, "targets": {"top1": [1, 2]}}),
+        "calibration.json", r"holds a target 'top1' that is not a calibrator record"),
+    "calibration.json unknown target": (
+        lambda g: write_calibration(g, {"calibrated": True, "targets": {"top1": KNOWN.to_json(), "top5": {}}}),
+        "calibration.json", r"holds a target 'top5', which geoloc does not compute \(top1, within_5m\)"),
     "queries.jsonl row out of range": (
         lambda g: drop_line(g / "queries.jsonl", lambda x: x[:-1] + [x[-1].replace('"positive": 29', '"positive": 30')]),
         "queries.jsonl", r'line 30: "positive" must be a gallery row in 0..29, got 30'),

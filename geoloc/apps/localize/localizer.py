@@ -12,8 +12,9 @@ The confidence (docs/confidence.md) is the gallery's calibrated P(top-1 tile rig
 margin over the second; it is given where the query's condition is the one it was fitted in (the heading given,
 exactly, at the fitted field of view), and `abstain=` marks answers below a threshold. A refined tile adds its own
 `confidence_within_5m`: the gallery's calibrated P(the refined position is within 5 m | the tile holds the camera),
-from the refiner's mass within 5 m; given where the refiner searches the heading itself (trained with an unknown
-heading) or the query's heading is given exactly.
+from the refiner's mass within 5 m; given where it was fitted for this checkpoint's refiner (its weights and test
+condition) and where the refiner searches the heading itself (trained with an unknown heading) or the query's
+heading is given exactly.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from geoloc.eval.calibration import Calibrator, retrieval_features
 from geoloc.eval.candidates import merge_headings, rank_candidates
 from geoloc.eval.gallery import GalleryIndex
 from geoloc.tasks.crossview import (POSITION_KEYS, TOP1, WITHIN_5M, CrossViewEncoder, LocalizationResult,
-                                    calibrators, open_gallery, refine_features)
+                                    calibrators, open_gallery, refine_features, refiner_calibrator)
 from geoloc.tasks.crossview.views import headings_around
 
 CANDIDATES_PER_PASS = 12  # candidate headings encoded per forward pass: bounds the activations of a heading search
@@ -53,9 +54,10 @@ class Localizer:
                  calibration: dict | None = None):
         self.encoder, self.index, self.places, self.meta = encoder, index, places, info
         self.calibration = calibration  # the gallery's calibration.json (None: saved without one)
-        fitted = calibrators(calibration)
-        self.calibrator: Calibrator | None = fitted.get(TOP1)
-        self.within: Calibrator | None = fitted.get(WITHIN_5M)  # the refiner's, where fitted
+        self.calibrator: Calibrator | None = calibrators(calibration).get(TOP1)
+        # the refiner's, where it was fitted for this checkpoint's refiner, else why there is none
+        self.within: Calibrator | str | None = (None if encoder.refiner is None else
+                                                refiner_calibrator(calibration, encoder.refiner_condition))
         self.limits = limits.limits() if limits is not None else QueryLimits()
         # candidate headings of the search: as asked, else as the checkpoint's dataset config says
         self.device = encoder.device
@@ -91,12 +93,11 @@ class Localizer:
             info = {"calibrated": False, "why": record.get("why", "the gallery was saved without a calibration.json")}
         else:
             info = {"calibrated": True, "condition": self.calibrator.condition, "fitted_on": self.calibrator.fitted_on}
-        if self.encoder.refiner is not None:
-            info[WITHIN_5M] = ({"calibrated": False, "why": record.get("refiner_why", "the gallery was saved without "
-                                                                         "the refiner's calibration")}
-                               if self.within is None else
-                               {"calibrated": True, "condition": self.within.condition,
-                                "fitted_on": self.within.fitted_on})
+        if isinstance(self.within, str):
+            info[WITHIN_5M] = {"calibrated": False, "why": self.within}
+        elif self.within is not None:
+            info[WITHIN_5M] = {"calibrated": True, "condition": self.within.condition,
+                               "fitted_on": self.within.fitted_on}
         return info
 
     def calibrated_for(self, query: QuerySettings) -> bool:
@@ -182,7 +183,7 @@ class Localizer:
         out = self.encoder.refine(query, inputs, self.places.reference_extent_m[rows])
         # P(within 5 m | the tile holds the camera) where it holds: the refiner searches the heading, or it is given
         within = None
-        if self.within is not None and (self.encoder.refine_config.orientation_noise_deg >= 180.0
+        if isinstance(self.within, Calibrator) and (self.encoder.refine_config.orientation_noise_deg >= 180.0
                                         or answer.heading_source == "given"):
             within = self.within.probability(refine_features(out["mass"]))
         for i, hit in enumerate(answer.topk):

@@ -14,7 +14,7 @@ import sys
 from geoloc import registry
 from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
-from geoloc.tasks.crossview.confidence import TOP1, WITHIN_5M, calibrators, refine_features
+from geoloc.tasks.crossview.confidence import TOP1, WITHIN_5M, calibrators, refine_features, refiner_calibrator
 from geoloc.tasks.crossview.gallery_folder import SavedGallery, open_gallery
 from geoloc.tasks.crossview.gallery_shards import merge_shards
 from geoloc.tasks.crossview.localization import LocalizationResult
@@ -25,4 +25,4 @@ registry.register("task", "crossview", sys.modules[__name__])
 
 __all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "SavedGallery",
            "TOP1", "WITHIN_5M", "calibrators", "canonical_config", "config_nodes", "evaluate", "merge_shards",
-           "open_gallery", "read_places", "refine_features", "sweep_metric", "train"]
+           "open_gallery", "read_places", "refine_features", "refiner_calibrator", "sweep_metric", "train"]

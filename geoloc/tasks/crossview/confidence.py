@@ -149,6 +149,24 @@ def calibrators(record: dict | None) -> dict[str, Calibrator]:
             if target != TOP1 or record.get("calibrated")}
 
 
+def refiner_calibrator(record: dict | None, condition: dict) -> Calibrator | str:
+    """The record's "within_5m" calibrator where it was fitted for the refiner and condition that will use it
+    (`condition`: refine_confidence.refiner_condition of that refiner), else why that refiner has no confidence. A
+    gallery's retrieval weights do not name its refiner, so a gallery may meet another refiner than the one its
+    calibrator was fitted for; its top-1 confidence stays valid."""
+    fitted = calibrators(record).get(WITHIN_5M)
+    if fitted is None:
+        return (record or {}).get("refiner_why", "the gallery was saved without the refiner's calibration")
+    differs = [f"{key} {fitted.condition.get(key)!r} (calibration) vs {value!r} (this refiner)"
+               for key, value in condition.items() if fitted.condition.get(key) != value]
+    if differs:
+        return (f"its calibration was fitted for another refiner or condition ({'; '.join(differs)}): the gallery "
+                "was saved with another checkpoint's refiner, or by an earlier geoloc that did not record the "
+                "refiner's weights. Save the gallery again with this checkpoint (python evaluate.py ckpt=CKPT "
+                "gallery.save=DIR) for its refiner's confidence")
+    return fitted
+
+
 def confidence_report(calibrator: Calibrator, features: np.ndarray, right: np.ndarray,
                       figure: Path | None = None) -> dict:
     """{"ece_<target>": ...} of the scored answers (ece_top1, ece_within_5m); with `figure`, their reliability and

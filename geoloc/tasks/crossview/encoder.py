@@ -29,6 +29,7 @@ from geoloc.engine.device import resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
 from geoloc.tasks.crossview.refine import match, offset_m
+from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
 from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
 from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov, view_canvas
@@ -81,6 +82,12 @@ class CrossViewEncoder:
     def fingerprint(self) -> str:
         """The weights' fingerprint (engine/checkpoint.py), as saved galleries record it."""
         return ckpt_io.weights_fingerprint(self.model)
+
+    @cached_property
+    def refiner_condition(self) -> dict | None:
+        """What the refiner's confidence must have been fitted for to hold for this refiner
+        (refine_confidence.refiner_condition: its weights and test keys); None without a refiner."""
+        return None if self.refiner is None else refiner_condition(self.refiner, self.refine_config)
 
     @cached_property
     def _reader_views(self) -> dict[str, str]:

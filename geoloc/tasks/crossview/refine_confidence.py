@@ -10,15 +10,17 @@ checkpoint with a refiner states the refiner's accuracy beside its calibration.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from geoloc.engine import distributed as dist
+from geoloc.engine.checkpoint import weights_fingerprint
 from geoloc.eval.calibration import Calibrator
 from geoloc.eval.fine_error import fine_summary, whole_tile_summary
-from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, calibrators, confidence_report, fit_within,
-                                               refine_features)
+from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, confidence_report, fit_within,
+                                               refine_features, refiner_calibrator)
 from geoloc.tasks.crossview.datasets import holdout_rule
-from geoloc.tasks.crossview.refine import RADIUS_M, TileAnswers, labels_of, whole_tile_answers
+from geoloc.tasks.crossview.refine import RADIUS_M, RefineConfig, TileAnswers, labels_of, whole_tile_answers
 
 NO_SCALE = "the split's tiles have no metres per pixel, so the refiner's error has no metres to calibrate"
 
@@ -43,11 +45,18 @@ def fitted_within(task, held_out, held: dict | None) -> Calibrator | str | None:
     answers = refine_answers(task, held_out.split, held)
     if answers is None:
         return NO_SCALE
-    split = held_out.split
-    condition = {"tile": "holds the camera, anywhere in it",
-                 "orientation_noise_deg": float(task.refine.orientation_noise_deg), "radius_m": RADIUS_M}
-    rule = holdout_rule(split, f"each refined in every tile that holds it ({len(answers.mass)} answers)")
-    return fit_within(answers.mass, answers.error_m, RADIUS_M, condition, rule)
+    rule = holdout_rule(held_out.split, f"each refined in every tile that holds it ({len(answers.mass)} answers)")
+    return fit_within(answers.mass, answers.error_m, RADIUS_M, refiner_condition(task.refiner, task.refine), rule)
+
+
+def refiner_condition(refiner, refine: RefineConfig) -> dict:
+    """What a "within_5m" calibrator holds for, recorded as its condition when it is fitted and compared before it
+    is used: the refiner's own weights (their fingerprint: two refiners trained from one retrieval run share the
+    gallery's retrieval weights, not these) and the RefineConfig keys that shape its test answers, beside the tile
+    and the radius it counts."""
+    return {"tile": "holds the camera, anywhere in it", "radius_m": RADIUS_M,
+            "orientation_noise_deg": float(refine.orientation_noise_deg), "size": int(refine.size),
+            "query_extent_m": float(refine.query_extent_m), "refiner_fingerprint": weights_fingerprint(refiner)}
 
 
 def scored_within(record: dict | None, task, split, maps: dict, run_dir: Path | None) -> dict:
@@ -60,8 +69,11 @@ def scored_within(record: dict | None, task, split, maps: dict, run_dir: Path | 
     out = {**fine_summary(answers.error_m[answers.positive]), **labels_of(split)}
     if split.semi_positives is not None and split.query_semi_tile_px is not None:
         out.update(whole_tile_summary(answers.error_m, answers.truth))
-    calibrator = calibrators(record).get(WITHIN_5M)
-    if calibrator is not None:
+    calibrator = refiner_calibrator(record, refiner_condition(task.refiner, task.refine))
+    if isinstance(calibrator, str):
+        if record and WITHIN_5M in record.get("targets", {}):  # fitted, but for another refiner or condition
+            warnings.warn(f"no ece_within_5m: {calibrator}")
+    else:
         figure = Path(run_dir) / f"confidence_{WITHIN_5M}.png" if run_dir is not None and dist.is_main() else None
         out.update(confidence_report(calibrator, refine_features(answers.mass), answers.error_m <= RADIUS_M, figure))
     return out

@@ -20,6 +20,7 @@ from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1
 from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.refine import RefineConfig, whole_tile_answers
+from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from helpers.gallery_runs import META
 
 LATTICE = 17  # the fake refiner's map: 17 x 17 positions over the tile
@@ -28,7 +29,12 @@ SIDE_PX, METRES_PER_PX = 64, 0.5  # tiles of 32 m
 
 class GaussianGuess(torch.nn.Module):
     """A refiner whose query map is its guess (row, col tile fractions) and a spread (metres): match gives the
-    Gaussian of that spread around the guess on the lattice; the reference map is ignored."""
+    Gaussian of that spread around the guess on the lattice; the reference map is ignored. `version`: its one
+    weight, which tells two of them apart (their fingerprint) without changing what they answer."""
+
+    def __init__(self, version: float = 0.0):
+        super().__init__()
+        self.register_buffer("version", torch.tensor(version))
 
     def encode_query(self, images):
         return images
@@ -115,10 +121,9 @@ def test_the_within_5m_calibrator_is_a_logistic_fit_on_the_mass_log_odds():
     assert with_refiner({"calibrated": False, "why": "x"}, "none fitted")["refiner_why"] == "none fitted"
 
 
-def refining_task():
-    refine = RefineConfig()
-    return SimpleNamespace(model_cfg=SimpleNamespace(dim=8), refiner=GaussianGuess(), refine=refine,
-                           refine_candidates=lambda: torch.zeros(1))
+def refining_task(version: float = 0.0, **refine):
+    return SimpleNamespace(model_cfg=SimpleNamespace(dim=8), refiner=GaussianGuess(version),
+                           refine=RefineConfig(**refine), refine_candidates=lambda: torch.zeros(1))
 
 
 def unit(rng, n, d=8):
@@ -126,8 +131,9 @@ def unit(rng, n, d=8):
     return torch.tensor(x / np.linalg.norm(x, axis=1, keepdims=True), dtype=torch.float32)
 
 
-def run_gallery(monkeypatch, tmp_path, held: bool, **cfg):
-    """evaluate.py's gallery path on 300 test and 200 held-out tiles, descriptors and refiner maps given."""
+def run_gallery(monkeypatch, tmp_path, held: bool, task=None, **cfg):
+    """evaluate.py's gallery path (of `task`, default refining_task()) on 300 test and 200 held-out tiles,
+    descriptors and refiner maps given."""
     rng = np.random.default_rng(5)
     splits = {"test": tile_split(300, 2, "test"), "held": tile_split(200, 3, "held")}
     data = {k: EvalData(v) for k, v in splits.items()}
@@ -145,7 +151,7 @@ def run_gallery(monkeypatch, tmp_path, held: bool, **cfg):
 
     monkeypatch.setattr(crossview_gallery, "encode_split", encode_split)
     engine = SimpleNamespace(device=torch.device("cpu"))
-    metrics = crossview_gallery.evaluate(refining_task(), engine, data["test"], 4, GalleryConfig(**cfg), META,
+    metrics = crossview_gallery.evaluate(task or refining_task(), engine, data["test"], 4, GalleryConfig(**cfg), META,
                                          data["held"] if held else None, 360.0, tmp_path / "run")
     return metrics, splits, maps
 
@@ -183,3 +189,36 @@ def test_a_gallery_without_held_out_queries_has_no_refiner_confidence_and_still_
     assert record == {"calibrated": False, "why": NO_HOLDOUT, "refiner_why": NO_HOLDOUT}
     assert "ece_within_5m" not in metrics and "fine_median_m" in metrics
     assert not (tmp_path / "run" / "confidence_within_5m.png").exists()
+
+
+def test_a_gallery_used_with_another_refiner_has_no_refiner_confidence_and_says_why(monkeypatch, tmp_path):
+    """Two refiners trained from one retrieval run share its weights, hence the gallery's model fingerprint: an
+    unknown-heading refiner served with a known-heading refiner's gallery gave the other's confidence (0.200 where
+    its own gave 0.021), /health called it valid and evaluate.py gallery.load= reported the other's ECE."""
+    from geoloc.apps.localize import Localizer
+
+    (tmp_path / "run").mkdir()
+    folder = tmp_path / "gallery"
+    saved, _, _ = run_gallery(monkeypatch, tmp_path, True, save=str(folder))
+    own, _, _ = run_gallery(monkeypatch, tmp_path, False, load=str(folder))
+    assert own["ece_within_5m"] == pytest.approx(saved["ece_within_5m"])
+    record = json.loads((folder / "calibration.json").read_text())
+    for other, differs in ((refining_task(version=1.0), "refiner_fingerprint"),
+                           (refining_task(orientation_noise_deg=180.0), "orientation_noise_deg")):
+        with pytest.warns(UserWarning, match=rf"no ece_within_5m: its calibration was fitted for another refiner or "
+                                             rf"condition \({differs} .* \(calibration\) vs .* \(this refiner\)"):
+            foreign, _, _ = run_gallery(monkeypatch, tmp_path, False, task=other, load=str(folder))
+        assert "ece_within_5m" not in foreign and "fine_median_m" in foreign
+        assert foreign["R@1"] == own["R@1"] and foreign["ece_top1"] == own["ece_top1"]  # retrieval stays valid
+        # the service: /health says why, and no answer carries the other refiner's confidence
+        encoder = SimpleNamespace(device=torch.device("cpu"), data=SimpleNamespace(heading_steps=36),
+                                  refiner=other.refiner, refine_config=other.refine,
+                                  refiner_condition=refiner_condition(other.refiner, other.refine))
+        health = Localizer(encoder, None, None, {"query_view": "panorama"}, calibration=record).calibration_info()
+        assert health["calibrated"] is True and health[WITHIN_5M]["calibrated"] is False
+        assert f"fitted for another refiner or condition ({differs} " in health[WITHIN_5M]["why"]
+    encoder = SimpleNamespace(device=torch.device("cpu"), data=SimpleNamespace(heading_steps=36),
+                              refiner=GaussianGuess(), refine_config=RefineConfig(),
+                              refiner_condition=refiner_condition(GaussianGuess(), RefineConfig()))
+    assert Localizer(encoder, None, None, {"query_view": "panorama"},
+                     calibration=record).calibration_info()[WITHIN_5M]["calibrated"] is True

@@ -15,6 +15,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import run
 from geoloc.synthetic import generate
 from geoloc.tasks.crossview.confidence import calibrators, fit_within, refine_features
+from geoloc.tasks.crossview.encoder import CrossViewEncoder
 
 from conftest import TINY, compose_evaluate, compose_train
 from helpers.crossview_runs import task_of
@@ -85,9 +86,12 @@ def test_refinement_stage_from_a_retrieval_checkpoint(vigor_root, tmp_path):
     # the 3 held-out queries fit the refiner's P(within 5 m), or the record says why not (all right or all wrong)
     record = json.loads((gallery / "calibration.json").read_text())
     assert ("within_5m" in record.get("targets", {})) != ("refiner_why" in record)
-    if "within_5m" not in record.get("targets", {}):  # a calibrator of its own, to follow it into the answers
+    condition = CrossViewEncoder.load(refine_dir / "last.pt", device="cpu").refiner_condition
+    if "within_5m" in record.get("targets", {}):  # fitted for this refiner: its weights and test keys
+        assert record["targets"]["within_5m"]["condition"] == condition
+    else:  # a calibrator of its own, to follow it into the answers
         record["targets"] = {**record.get("targets", {}), "within_5m": fit_within(
-            [0.1, 0.4, 0.6, 0.9], [8.0, 3.0, 6.0, 1.0], 5.0, {"radius_m": 5.0}, "test").to_json()}
+            [0.1, 0.4, 0.6, 0.9], [8.0, 3.0, 6.0, 1.0], 5.0, condition, "test").to_json()}
         (gallery / "calibration.json").write_text(json.dumps(record))
     localizer = Localizer.load(refine_dir / "last.pt", gallery, device="cpu")
     assert localizer.info()["calibration"]["within_5m"]["calibrated"] is True

@@ -15,12 +15,14 @@ def encode(task, engine, loader, keys=("query", "reference"), refine: bool = Fal
 
     keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
     refine: also {"refine_<key>": `task.refiner`'s maps of batch["refine_<key>"]}, the same items read at the
-    refiner's input (datasets.eval_sets(refine=)), from the same decode.
+    refiner's input (datasets.eval_sets(refine=)), from the same decode, and with the queries their
+    "refine_heading" (the heading each was read at, the truth of the refiner's).
     """
     def describe(batch):
         out = {k: getattr(task.model, k)(batch[k]) for k in keys}
         if refine:
             out.update({f"refine_{k}": refine_encoder(task, k)(batch[f"refine_{k}"]) for k in keys})
+            out.update(query_heading(batch, keys))
         return out
 
     return _encoded(task, engine, loader, describe)
@@ -29,14 +31,22 @@ def encode(task, engine, loader, keys=("query", "reference"), refine: bool = Fal
 def encode_images(task, engine, loader, encoder, side: str, refine: bool = False) -> dict:
     """{side: N x dim float32 CPU descriptors} of a ViewImages loader's images (batch["image"]) through `encoder` (a
     branch of `task.model`: `task.model.encoders(...)` picks it), in dataset order; refine: also {"refine_<side>":
-    the refiner's maps of the same images at its input (batch["refine_image"])}, from the same decode."""
+    the refiner's maps of the same images at its input (batch["refine_image"]) and the queries' "refine_heading"},
+    from the same decode."""
     def describe(batch):
         out = {side: encoder(batch["image"])}
         if refine:
             out[f"refine_{side}"] = refine_encoder(task, side)(batch["refine_image"])
+            out.update(query_heading(batch, (side,)))
         return out
 
     return _encoded(task, engine, loader, describe)
+
+
+def query_heading(batch, sides) -> dict:
+    """{"refine_heading": the heading each query of the batch was read at for the refiner} where `sides` holds the
+    queries, else {}."""
+    return {"refine_heading": batch["refine_heading"]} if "query" in sides else {}
 
 
 def refine_encoder(task, side: str):

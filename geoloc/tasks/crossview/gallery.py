@@ -48,7 +48,7 @@ from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, calibrators, co
                                                index_answers, uncalibrated, with_positives, with_refiner)
 from geoloc.tasks.crossview.encode import encode, encode_images
 from geoloc.tasks.crossview.gallery_folder import open_codebook, open_gallery, save_gallery
-from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_within
+from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_refiner
 
 
 AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (benchmarks/README.md, 1M references)
@@ -215,7 +215,8 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
         plan = split_plan(split, exact=index.kind == "flat")
         metrics = guarded(lambda: index_metrics(index, query, split), spread, plan)
         return {**metrics, **scored_confidence(saved.calibration, index, query, split, run_dir),
-                **scored_within(saved.calibration, task, data.split, desc, run_dir), "num_references": len(index)}
+                **scored_refiner(saved.calibration, task, split, desc, top1_rows(index, query), run_dir),
+                "num_references": len(index)}
     index_knobs(cfg, split.num_references, task.model_cfg.dim)  # a kind that cannot train fails before encoding
     desc = encode_split(task, engine, data, batch_size, refine=task.refiner is not None)
     query, reference = desc["query"], desc["reference"]
@@ -237,8 +238,16 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
     confidence = scored_confidence(record, built[0], query, split, run_dir) if built else {}
-    return {**metrics, **confidence, **scored_within(record, task, split, desc, run_dir),
+    # a collapsed gallery was not built: its queries' top-1 tiles are the exact ranking's, as validation's
+    searched = built[0] if built else GalleryIndex(reference.shape[1]).add(reference)
+    return {**metrics, **confidence, **scored_refiner(record, task, split, desc, top1_rows(searched, query), run_dir),
             "num_references": len(reference)}
+
+
+def top1_rows(index: GalleryIndex, query: torch.Tensor):
+    """() -> (Q,) each query's top-1 row in `index`: the gallery's answer, where a refiner's end-to-end metres
+    need it (refine.fine_metrics)."""
+    return lambda: index.search(query, 1)[1][:, 0].numpy()
 
 
 def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, fields, replace
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -31,7 +31,6 @@ from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import (E2E_KEYS, FINE_HEADING_KEYS, FINE_KEYS, WHOLE_TILE_KEYS, e2e_summary,
                                     fine_summary, heading_summary, whole_tile_summary)
-from geoloc.eval.scoring import top_k
 from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, to_tensor
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
 
@@ -241,11 +240,13 @@ def refined(refiner, refine: RefineConfig, query_maps: torch.Tensor, reference_m
 
 def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidates: torch.Tensor,
                  query_maps: torch.Tensor, reference_maps: torch.Tensor, true_heading: torch.Tensor,
-                 query_descriptors: torch.Tensor | None = None,
-                 reference_descriptors: torch.Tensor | None = None) -> dict[str, float]:
+                 top1: Callable[[], np.ndarray] | None = None, answers: TileAnswers | None = None) -> dict[str, float]:
     """fine_plan(split)'s metrics: each query refined in its positive tile (the fine-grained protocol), in every
     tile that holds it (the whole tile), and in its top-1 retrieved tile (end to end: the tile centre's position
-    plus the refined offset, against the query's)."""
+    plus the refined offset, against the query's). The one report of a refiner, in validation, evaluate.py and the
+    gallery path. top1(): (Q,) each query's top-1 retrieved tile (the scorer's top_k, or a saved gallery's search),
+    asked only where the plan reports end to end; answers: the whole-tile answers (whole_tile_answers) where the
+    caller has them already."""
     out: dict = {}
     plan = fine_plan(split, refine)
     rows = np.arange(split.num_queries)
@@ -256,14 +257,15 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
         errors = pair_errors_m(position.numpy(), split, rows, split.positives)[shown]
         out.update(fine_summary(errors), **labels_of(split))
     if WHOLE_TILE_KEYS in plan:
-        answers = whole_tile_answers(refiner, refine, split, candidates, query_maps, reference_maps)
+        if answers is None:
+            answers = whole_tile_answers(refiner, refine, split, candidates, query_maps, reference_maps)
         out.update(whole_tile_summary(answers.error_m, answers.truth))
     if FINE_HEADING_KEYS in plan:
         out.update(heading_summary(circular_error_deg(heading.numpy(), true_heading.cpu().numpy())))
     if E2E_KEYS in plan:
-        top1 = top_k(query_descriptors, reference_descriptors, 1)[1][:, 0].cpu().numpy()
-        e2e_position, _, _ = refined(refiner, refine, query_maps, reference_maps, rows, top1, candidates, split)
-        out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), top1, split)))
+        tiles = np.asarray(top1(), np.int64)
+        e2e_position, _, _ = refined(refiner, refine, query_maps, reference_maps, rows, tiles, candidates, split)
+        out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), tiles, split)))
     return out
 
 

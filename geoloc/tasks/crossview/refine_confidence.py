@@ -4,8 +4,9 @@ camera), fitted on the held-out train queries when a gallery is saved, scored on
 Both sides refine each query in every tile that holds it (refine.whole_tile_answers: the refiner's mass within 5 m
 of its answer and the answer's metre error), so the truths cover the whole tile as a real query's do in its best
 tile, at the refiner's test headings; confidence.py holds the fit and the record. The scored side also reports the
-fine-grained metres (`fine_*` in the positive tiles, `whole_tile_*` in every tile), so a gallery evaluation of a
-checkpoint with a refiner states the refiner's accuracy beside its calibration.
+refiner's metrics as the plain evaluation does (refine.fine_metrics: `fine_*`, `whole_tile_*`, `fine_heading_*`,
+`e2e_*` where they apply), so a gallery evaluation of a checkpoint with a refiner states the refiner's accuracy
+beside its calibration.
 """
 
 from __future__ import annotations
@@ -16,11 +17,10 @@ from pathlib import Path
 from geoloc.engine import distributed as dist
 from geoloc.engine.checkpoint import weights_fingerprint
 from geoloc.eval.calibration import Calibrator
-from geoloc.eval.fine_error import fine_summary, whole_tile_summary
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, confidence_report, fit_within,
                                                refine_features, refiner_calibrator)
 from geoloc.tasks.crossview.datasets import holdout_rule
-from geoloc.tasks.crossview.refine import RADIUS_M, RefineConfig, TileAnswers, labels_of, whole_tile_answers
+from geoloc.tasks.crossview.refine import RADIUS_M, RefineConfig, TileAnswers, fine_metrics, whole_tile_answers
 
 NO_SCALE = "the split's tiles have no metres per pixel, so the refiner's error has no metres to calibrate"
 
@@ -59,16 +59,19 @@ def refiner_condition(refiner, refine: RefineConfig) -> dict:
             "query_extent_m": float(refine.query_extent_m), "refiner_fingerprint": weights_fingerprint(refiner)}
 
 
-def scored_within(record: dict | None, task, split, maps: dict, run_dir: Path | None) -> dict:
-    """The fine_* metres of the split's queries refined in their positive tiles, the whole_tile_* metres of every
-    tile that holds them (the refiner's `maps`, as in refine_answers) and, under a gallery calibrated for the
-    refiner, `ece_within_5m` over every tile and run_dir/confidence_within_5m.png; {} without a refiner."""
-    answers = refine_answers(task, split, maps)
-    if answers is None:
+def scored_refiner(record: dict | None, task, split, maps: dict, top1, run_dir: Path | None) -> dict:
+    """The refiner's metrics of the split's queries, as the plain evaluation reports them (refine.fine_metrics,
+    from the refiner's `maps` and the queries' "refine_heading" of gallery.encode_split(refine=True); `top1()`: each
+    query's top-1 tile in the gallery) and, under a gallery calibrated for this refiner (refiner_calibrator),
+    `ece_within_5m` over every tile that holds a query and run_dir/confidence_within_5m.png; {} without a
+    refiner."""
+    if task.refiner is None:
         return {}
-    out = {**fine_summary(answers.error_m[answers.positive]), **labels_of(split)}
-    if split.semi_positives is not None and split.query_semi_tile_px is not None:
-        out.update(whole_tile_summary(answers.error_m, answers.truth))
+    answers = refine_answers(task, split, maps)
+    out = fine_metrics(task.refiner, split, task.refine, task.refine_candidates(), maps["refine_query"],
+                       maps["refine_reference"], maps["refine_heading"], top1, answers)
+    if answers is None:
+        return out
     calibrator = refiner_calibrator(record, refiner_condition(task.refiner, task.refine))
     if isinstance(calibrator, str):
         if record and WITHIN_5M in record.get("targets", {}):  # fitted, but for another refiner or condition

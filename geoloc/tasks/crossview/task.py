@@ -24,6 +24,7 @@ from geoloc.data.relevance import Relevance
 from geoloc.eval.descriptors import check_descriptors
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
+from geoloc.eval.scoring import top_k
 from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
 from geoloc.tasks.crossview.transforms import normalised
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
@@ -215,7 +216,8 @@ class CrossViewTask(Task):
         else:
             maps = (outputs["refine_query_map"], outputs["refine_reference_map"], outputs["refine_heading"])
             descriptors = (outputs["query"], outputs["reference"])
-        return fine_metrics(self.refiner, self.split, self.refine, self.refine_candidates(), *maps, *descriptors)
+        return fine_metrics(self.refiner, self.split, self.refine, self.refine_candidates(), *maps,
+                            top1=lambda: top_k(*descriptors, 1)[1][:, 0].cpu().numpy())
 
     def _retrieval_metrics(self, outputs):
         if "query" in outputs and isinstance(outputs["query"], dict):  # two loaders

@@ -131,25 +131,33 @@ def unit(rng, n, d=8):
     return torch.tensor(x / np.linalg.norm(x, axis=1, keepdims=True), dtype=torch.float32)
 
 
+SIDE = {"query": "query", "reference": "reference", "refine_query": "query", "refine_reference": "reference",
+        "refine_heading": "query"}  # which side of encode_split gives each entry
+
+
+def given_encoder(monkeypatch, given: dict):
+    """gallery.encode_split replaced by the entries given for each EvalData (`given`: {id(data): {key: tensor}}):
+    the refiner's only with refine=True, as from the same pass as the descriptors; `rows`: those references."""
+    def encode_split(task, engine, data, batch_size, sides=("query", "reference"), rows=None, refine=False):
+        out = {k: v for k, v in given[id(data)].items() if SIDE[k] in sides and (refine or k in SIDE.values())}
+        return {k: v[list(rows)] if rows is not None and SIDE[k] == "reference" else v for k, v in out.items()}
+
+    monkeypatch.setattr(crossview_gallery, "encode_split", encode_split)
+
+
 def run_gallery(monkeypatch, tmp_path, held: bool, task=None, **cfg):
     """evaluate.py's gallery path (of `task`, default refining_task()) on 300 test and 200 held-out tiles,
     descriptors and refiner maps given."""
     rng = np.random.default_rng(5)
     splits = {"test": tile_split(300, 2, "test"), "held": tile_split(200, 3, "held")}
     data = {k: EvalData(v) for k, v in splits.items()}
-    name = {id(v): k for k, v in data.items()}
     references = {k: unit(rng, v.num_queries) for k, v in splits.items()}
     descriptors = {k: (torch.nn.functional.normalize(r + 0.9 * unit(rng, len(r)), dim=1), r)  # noisy positives
                    for k, r in references.items()}
     maps = {"test": guesses(splits["test"], 4), "held": guesses(splits["held"], 6)}
-
-    def encode_split(task, engine, d, batch_size, sides=("query", "reference"), rows=None, refine=False):
-        out = dict(zip(("query", "reference"), descriptors[name[id(d)]]))
-        if refine:  # the refiner's maps come from the same pass as the descriptors
-            out.update(refine_query=maps[name[id(d)]], refine_reference=torch.zeros(len(maps[name[id(d)]]), 1))
-        return {k: v for k, v in out.items() if k.removeprefix("refine_") in sides}
-
-    monkeypatch.setattr(crossview_gallery, "encode_split", encode_split)
+    given_encoder(monkeypatch, {id(data[k]): {**dict(zip(("query", "reference"), descriptors[k])),
+                                              "refine_query": maps[k], "refine_reference": torch.zeros(len(maps[k]), 1),
+                                              "refine_heading": torch.zeros(len(maps[k]))} for k in data})
     engine = SimpleNamespace(device=torch.device("cpu"))
     metrics = crossview_gallery.evaluate(task or refining_task(), engine, data["test"], 4, GalleryConfig(**cfg), META,
                                          data["held"] if held else None, 360.0, tmp_path / "run")
@@ -222,3 +230,51 @@ def test_a_gallery_used_with_another_refiner_has_no_refiner_confidence_and_says_
                               refiner_condition=refiner_condition(GaussianGuess(), RefineConfig()))
     assert Localizer(encoder, None, None, {"query_view": "panorama"},
                      calibration=record).calibration_info()[WITHIN_5M]["calibrated"] is True
+
+
+def vigor_like_split(seed: int = 0, queries: int = 120, side: int = 8) -> RetrievalSplit:
+    """Queries over a side x side grid of 32 m tiles, each in its positive tile and in the neighbour east of it
+    (a semi-positive holding its truth), with metre positions: every fine-grained key set applies."""
+    rng = np.random.default_rng(seed)
+    tiles = side * side
+    # x, y: tiles 16 m apart west to east (each half over the next, as VIGOR's), 32 m apart north to south
+    centre = np.stack(np.meshgrid(np.arange(side) * 16.0, np.arange(side) * -32.0), -1).reshape(-1, 2)
+    positive = rng.integers(0, tiles - 1, queries)
+    positive[(positive % side) == side - 1] -= 1  # an east neighbour for every positive
+    px = np.column_stack([rng.uniform(8, 56, queries), rng.uniform(32, 64, queries)])  # the east half
+    semi_px = np.column_stack([px[:, 0], px[:, 1] - 32.0])[:, None]  # in the east neighbour: 16 m = 32 px further west
+    east_north = np.column_stack([(px[:, 1] / SIDE_PX - 0.5) * 32.0, (0.5 - px[:, 0] / SIDE_PX) * 32.0])
+    return RetrievalSplit("vigor_like", "/data", [f"q{i}.jpg" for i in range(queries)],
+                          [f"t{i}.png" for i in range(tiles)], positive, semi_positives=(positive + 1)[:, None],
+                          query_xy=centre[positive] + east_north, reference_xy=centre,
+                          reference_size_px=np.full((tiles, 2), SIDE_PX),
+                          reference_metres_per_px=np.full(tiles, METRES_PER_PX), query_tile_px=px,
+                          query_semi_tile_px=semi_px)
+
+
+def test_the_gallery_path_reports_the_refiner_keys_and_values_of_the_plain_evaluation(monkeypatch, tmp_path):
+    """The gallery path dropped fine_heading_* and e2e_*: an unknown-heading refiner's heading error was never
+    reported from a gallery. Both paths now report refine.fine_metrics, on the same split the same numbers."""
+    from geoloc.tasks.crossview.task import CrossViewTask
+
+    split = vigor_like_split()
+    rng = np.random.default_rng(1)
+    reference = unit(rng, split.num_references)
+    query = torch.nn.functional.normalize(reference[split.positives] + 0.5 * unit(rng, split.num_queries), dim=1)
+    maps = guesses(split, 2)
+    heading = torch.tensor(rng.uniform(0, 360, split.num_queries), dtype=torch.float32)
+    task = SimpleNamespace(**vars(refining_task(orientation_noise_deg=180.0)), split=split)
+    plain = CrossViewTask._fine_metrics(task, {"query": {"descriptor": query, "refine_map": maps,
+                                                         "refine_heading": heading},
+                                               "reference": {"descriptor": reference,
+                                                             "refine_map": torch.zeros(len(reference), 1)}})
+    assert {"fine_median_m", "whole_tile_median_m", "fine_heading_median_deg", "e2e_median_m"} <= set(plain)
+    data = EvalData(split)
+    given_encoder(monkeypatch, {id(data): {"query": query, "reference": reference, "refine_query": maps,
+                                           "refine_reference": torch.zeros(len(reference), 1),
+                                           "refine_heading": heading}})
+    engine = SimpleNamespace(device=torch.device("cpu"))
+    for cfg in ({"save": str(tmp_path / "gallery")}, {"load": str(tmp_path / "gallery")}):
+        gallery = crossview_gallery.evaluate(task, engine, data, 4, GalleryConfig(**cfg), META)
+        assert {k: gallery[k] for k in plain} == pytest.approx(plain), cfg
+        assert 0 < gallery["R@1"] < 1  # some top-1 tiles are wrong: end to end is not the fine-grained protocol

@@ -135,6 +135,15 @@ def test_unknown_heading_reports_heading_errors_and_resumes(vigor_root, tmp_path
     assert 0.0 <= first["fine_heading_median_deg"] <= 180.0
     resumed = run.train(compose_train([*args, "trainer.max_epochs=2", f"ckpt={tmp_path / 'run' / 'last.pt'}"]))
     assert "fine_heading_median_deg" in resumed
+    # the gallery path reports the refiner's keys and values of the plain evaluation, the heading's included
+    common = [f"ckpt={tmp_path / 'run' / 'last.pt'}", "dataset=vigor", f"dataset.root={vigor_root}",
+              "dataset.cities=[Chicago,NewYork]", "progress=false"]
+    plain = run.evaluate(compose_evaluate([*common, f"run_dir={tmp_path / 'plain'}"]))
+    saved = run.evaluate(compose_evaluate([*common, f"gallery.save={tmp_path / 'gallery'}",
+                                           f"run_dir={tmp_path / 'saving'}"]))
+    refiner_keys = [k for k in plain if k.startswith(("fine_", "whole_tile_", "e2e_"))]
+    assert {"fine_heading_median_deg", *FINE, *E2E} <= set(refiner_keys)
+    assert {k: saved[k] for k in refiner_keys} == pytest.approx({k: plain[k] for k in refiner_keys}, abs=1e-4)
 
 
 def test_the_default_run_has_no_refiner():

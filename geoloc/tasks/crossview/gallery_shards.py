@@ -19,7 +19,7 @@ from pathlib import Path
 
 from geoloc.config import ConfigError
 from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview.gallery_folder import INDEX, read_info, write_gallery_folder
+from geoloc.tasks.crossview.gallery_folder import INDEX, INFO, read_info, write_gallery_folder
 from geoloc.tasks.crossview.places import reference_paths_sha256
 
 # what every shard of one gallery shares: the weights, the split, the index and its codebook
@@ -38,12 +38,13 @@ def read_shards(folders: list[Path]) -> list[tuple[Path, dict]]:
         raise ConfigError("give the shard folders to merge: geoloc gallery merge SHARD_DIR... out=DIR")
     shards = []
     for folder in folders:
-        info = read_info(folder)
+        info = read_info(shard_folder(folder))
         part = info.get("part") or {}
         if part.get("role") != "shard":
             what = "a codebook" if part.get("role") == "codebook" else "a whole gallery"
             raise ConfigError(f"{folder} holds {what}, not a shard: merge only the folders that the shard jobs "
                               f"wrote (evaluate.py gallery.num_shards=S gallery.shard_index=i gallery.save=DIR)")
+        check_moments(folder, info)
         shards.append((Path(folder), info))
     first, ref = shards[0]
     for folder, info in shards[1:]:
@@ -83,6 +84,45 @@ def read_shards(folders: list[Path]) -> list[tuple[Path, dict]]:
     return ordered
 
 
+def shard_folder(folder: Path) -> Path:
+    """`folder`, refused unless it is a folder holding a gallery.json: what a shard job writes."""
+    wrote = "give the folders the shard jobs wrote (evaluate.py gallery.num_shards=S gallery.shard_index=i " \
+            "gallery.save=SHARD_DIR)"
+    if not folder.exists():
+        if any(c in str(folder) for c in "*?["):
+            raise ConfigError(f"{folder} matched no folder (the shell passes a pattern that matches nothing as it "
+                              f"is): check the pattern, and {wrote}")
+        raise ConfigError(f"{folder}: no such folder; {wrote}")
+    if not folder.is_dir():
+        raise ConfigError(f"{folder} is a file, not a shard folder: {wrote}")
+    if not (folder / INFO).is_file():
+        raise ConfigError(f"{folder} holds no {INFO}, so no shard job wrote it: {wrote}")
+    return folder
+
+
+def check_moments(folder: Path, info: dict) -> None:
+    """Refuse a shard whose gallery.json lacks the sums of its descriptors that merged_spread adds up."""
+    moments = info.get("reference_moments")
+    if not (isinstance(moments, dict) and all(isinstance(moments.get(k), list) and len(moments[k]) == info["dim"]
+                                              for k in ("sum", "sum_sq"))):
+        part = info["part"]
+        raise ConfigError(f"{folder / INFO} lacks reference_moments (the sums of the shard's descriptors, from "
+                          f"which the merge computes the gallery's spread; {info['dim']} of each), or holds them in "
+                          f"another form: it was edited or written by another version. Rebuild it with "
+                          f"{shard_command(folder, part['shard_index'], part['num_shards'])}")
+
+
+def shard_index(folder: Path, info: dict) -> GalleryIndex:
+    """The index of the shard in `folder`, loaded whole (it is merged into another), or a ConfigError naming the
+    shard and the way to write it again."""
+    try:
+        return GalleryIndex.load(folder / INDEX, mmap=False)
+    except (FileNotFoundError, ValueError) as err:
+        part = info["part"]
+        raise ConfigError(f"the shard in {folder}: {err}. Rebuild it with "
+                          f"{shard_command(folder, part['shard_index'], part['num_shards'])}") from None
+
+
 def merged_spread(shards: list[tuple[Path, dict]]) -> float:
     """descriptor_spread of all references (sum over dims of the per-dim sample std) from the shards' moments."""
     n = sum(info["num_references"] for _, info in shards)
@@ -99,9 +139,9 @@ def merge_shards(folders: list[str | Path], out: str | Path, overwrite: bool = F
     if len(queries) != 1:
         raise ConfigError(f"the shards' queries.jsonl differ ({', '.join(str(f) for f, _ in shards)}): they were "
                           "written from other query lists of the split; rebuild the shards from one split")
-    index = GalleryIndex.load(shards[0][0] / INDEX, mmap=False)  # the one that grows
-    for folder, _ in shards[1:]:  # one shard at a time in memory besides the merged index
-        index.merge(GalleryIndex.load(folder / INDEX, mmap=False))
+    index = shard_index(*shards[0])  # the one that grows
+    for folder, info in shards[1:]:  # one shard at a time in memory besides the merged index
+        index.merge(shard_index(folder, info))
     info = {k: v for k, v in shards[0][1].items() if k not in ("part", "reference_moments", "reference_spread")}
 
     def fill(tmp: Path) -> dict:

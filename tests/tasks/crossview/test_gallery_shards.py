@@ -5,6 +5,8 @@ descriptors: no network, no images."""
 from __future__ import annotations
 
 import json
+import re
+import shutil
 
 import pytest
 import torch
@@ -143,3 +145,29 @@ def test_parts_are_refused_where_a_gallery_is_expected_and_shards_need_the_codeb
         shards(monkeypatch, tmp_path, "pq_sq8", prefix="no_codebook")
     with pytest.raises(ConfigError, match=r"trained for another index: coarse_m 8 \(codebook\) vs 4 \(here\)"):
         shards(monkeypatch, tmp_path, "pq_sq8", codebook=codebook, prefix="other_knobs", coarse_m=4)
+
+
+def test_bad_merge_arguments_get_a_clean_message_and_exit_2(monkeypatch, tmp_path, capsys):
+    """A missing path, an unmatched glob, a file, a shard without gallery.faiss, a record without
+    reference_moments: each was a raw traceback."""
+    folders = shards(monkeypatch, tmp_path, "flat", count=2)
+    file = tmp_path / "notes.txt"
+    file.write_text("not a shard")
+    no_faiss, no_moments = tmp_path / "no_faiss", tmp_path / "no_moments"
+    shutil.copytree(folders[1], no_faiss)
+    (no_faiss / "gallery.faiss").unlink()
+    shutil.copytree(folders[1], no_moments)
+    info = json.loads((no_moments / "gallery.json").read_text())
+    del info["reference_moments"]
+    (no_moments / "gallery.json").write_text(json.dumps(info))
+    cases = {tmp_path / "nope": "no such folder",
+             tmp_path / "shards" / "*": r"matched no folder \(the shell passes a pattern that matches nothing as it is\)",
+             file: "is a file, not a shard folder",
+             no_faiss: r"its FAISS index .*gallery.faiss is missing.*Rebuild it with python evaluate.py",
+             no_moments: r"gallery.json lacks reference_moments .*Rebuild it with python evaluate.py"}
+    out = tmp_path / "out"
+    for bad, says in cases.items():
+        assert geoloc(["gallery", "merge", str(folders[0]), str(bad), f"out={out}"]) == 2, bad
+        err = capsys.readouterr().err
+        assert err.startswith("geoloc gallery: ") and str(bad) in err and re.search(says, err), err
+    assert not out.exists()

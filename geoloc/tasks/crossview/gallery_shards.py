@@ -123,6 +123,20 @@ def shard_index(folder: Path, info: dict) -> GalleryIndex:
                           f"{shard_command(folder, part['shard_index'], part['num_shards'])}") from None
 
 
+def check_out(out: Path, folders: list[Path]) -> None:
+    """Refuse an `out` that is one of the shard folders, lies inside one or holds one (paths resolved): writing the
+    merged gallery there would replace or remove a shard, whose block would have to be encoded again."""
+    target = out.resolve()
+    for folder in folders:
+        shard = folder.resolve()
+        where = ("is the shard folder" if target == shard else "is inside the shard folder" if shard in target.parents
+                 else "holds the shard folder" if target in shard.parents else None)
+        if where:
+            raise ConfigError(f"out={out} {where} {folder}: writing the merged gallery there would replace or remove "
+                              "the shard, whose block would have to be encoded again. Choose an out= folder outside "
+                              "the shards")
+
+
 def merged_spread(shards: list[tuple[Path, dict]]) -> float:
     """descriptor_spread of all references (sum over dims of the per-dim sample std) from the shards' moments."""
     n = sum(info["num_references"] for _, info in shards)
@@ -134,6 +148,7 @@ def merged_spread(shards: list[tuple[Path, dict]]) -> float:
 
 def merge_shards(folders: list[str | Path], out: str | Path, overwrite: bool = False) -> dict:
     """Join the shard folders into one gallery folder `out`; returns its gallery.json record."""
+    check_out(Path(out), [Path(f) for f in folders])
     shards = read_shards([Path(f) for f in folders])
     queries = {(folder / "queries.jsonl").read_bytes() for folder, _ in shards}
     if len(queries) != 1:

@@ -13,6 +13,7 @@ import torch
 from geoloc.cli import main as geoloc
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview import open_gallery
+from geoloc.tasks.crossview import gallery_shards
 from geoloc.tasks.crossview.gallery_shards import merge_shards
 
 from helpers.gallery_runs import META, gallery_evaluate, pairs_split
@@ -171,3 +172,19 @@ def test_bad_merge_arguments_get_a_clean_message_and_exit_2(monkeypatch, tmp_pat
         err = capsys.readouterr().err
         assert err.startswith("geoloc gallery: ") and str(bad) in err and re.search(says, err), err
     assert not out.exists()
+
+
+def test_an_out_folder_among_the_shards_is_refused_before_any_work(monkeypatch, tmp_path, capsys):
+    """out=s0 overwrite=true replaced shard s0 with the merged gallery, and s0's block had to be encoded again."""
+    folders = shards(monkeypatch, tmp_path, "flat", count=2)
+    before = {f: {p.name: p.read_bytes() for p in f.iterdir()} for f in folders}
+    loads = []
+    monkeypatch.setattr(gallery_shards.GalleryIndex, "load", lambda *a, **k: loads.append(a))
+    for out, what in ((folders[0], "is the shard folder"), (folders[1] / "merged", "is inside the shard folder"),
+                      (tmp_path, "holds the shard folder")):
+        args = ["gallery", "merge", *map(str, folders), f"out={out}", "overwrite=true"]
+        assert geoloc(args) == 2, out
+        err = capsys.readouterr().err
+        assert f"geoloc gallery: out={out} {what} " in err and "outside the shards" in err, err
+    assert not loads  # refused before any index was read
+    assert {f: {p.name: p.read_bytes() for p in f.iterdir()} for f in folders} == before

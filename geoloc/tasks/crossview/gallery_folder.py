@@ -11,8 +11,8 @@ A FAISS index's codes lie in gallery.faiss beside gallery.pt (GalleryIndex.save)
 
 A part of a gallery built across jobs (gallery.py `build_part`) is such a folder too, with a `part` record in
 gallery.json: a codebook (`role: codebook`, no rows, its index file's `codebook_sha256`) or a shard (`role: shard`,
-`shard_index`, `num_shards`, its rows `start`..`stop` of the split's `split_references`, and the
-`codebook_sha256` it was filled from). `open_gallery` refuses parts; `open_codebook` opens a codebook for a shard;
+`shard_index`, `num_shards`, its rows `start`..`stop` of the split's `split_references`, the
+`codebook_sha256` it was filled from, and `index_sha256`: the digest of each of its own index files). `open_gallery` refuses parts; `open_codebook` opens a codebook for a shard;
 `geoloc gallery merge` joins shards into a gallery (gallery_shards.py).
 
 Saving writes every file into a hidden folder beside DIR (`.DIR.<random>.tmp`) and renames that folder to DIR, so
@@ -109,11 +109,19 @@ def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit,
                 **index.params, **record, **write_places(tmp, split, rows)}
         if info.get("part", {}).get("role") == "codebook":
             info["codebook_sha256"] = file_sha256(faiss_file(tmp / INDEX))
+        if info.get("part", {}).get("role") == "shard":  # the merge checks that the files are still these
+            info["index_sha256"] = index_digests(tmp / INDEX)
         if calibration is not None:
             (tmp / CALIBRATION).write_text(json.dumps(calibration, indent=2, allow_nan=False) + "\n")
         return info
 
     return write_gallery_folder(folder, fill, overwrite)
+
+
+def index_digests(path: Path) -> dict[str, str]:
+    """{file name: sha256} of the files an index is saved in (GalleryIndex.save): `path` (gallery.pt) and, for a
+    FAISS index, the index file beside it."""
+    return {f.name: file_sha256(f) for f in (Path(path), faiss_file(path)) if f.is_file()}
 
 
 def write_gallery_folder(folder: str | Path, fill, overwrite: bool = False) -> dict:

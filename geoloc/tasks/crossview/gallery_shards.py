@@ -3,8 +3,8 @@
 Each shard folder (evaluate.py gallery.num_shards=S gallery.shard_index=i gallery.save=SHARD_DIR) holds the index of
 one contiguous block of the split's references and their references.jsonl; the merge checks that the shards are
 the S blocks of one gallery, each once: the same weights (`model_fingerprint`), split (dataset, split, root,
-`references_sha256`), index kind and knobs and codebook (`codebook_sha256`), and shard indices 0..S-1 with rows that
-follow each other. It then joins their indexes with FAISS's `merge_from` (GalleryIndex.merge: the stored codes are
+`references_sha256`), index kind and knobs and codebook (`codebook_sha256`), shard indices 0..S-1 with rows that
+follow each other, and index files that are the ones each shard job wrote (`index_sha256`). It then joins their indexes with FAISS's `merge_from` (GalleryIndex.merge: the stored codes are
 moved, nothing is re-encoded or re-trained; one shard at a time is read besides the merged index), their references.jsonl in order (whose paths must hash to the split's
 `references_sha256`), takes the queries.jsonl they share, computes the reference spread from their moments, and
 writes one gallery folder (gallery_folder.write_gallery_folder: whole or not at all).
@@ -18,7 +18,8 @@ import shutil
 from pathlib import Path
 
 from geoloc.config import ConfigError
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.engine.checkpoint import file_sha256
+from geoloc.eval.gallery import GalleryIndex, faiss_file
 from geoloc.tasks.crossview.gallery_folder import INDEX, INFO, read_info, write_gallery_folder
 from geoloc.tasks.crossview.places import reference_paths_sha256
 
@@ -45,6 +46,7 @@ def read_shards(folders: list[Path]) -> list[tuple[Path, dict]]:
             raise ConfigError(f"{folder} holds {what}, not a shard: merge only the folders that the shard jobs "
                               f"wrote (evaluate.py gallery.num_shards=S gallery.shard_index=i gallery.save=DIR)")
         check_moments(folder, info)
+        check_index_files(folder, info)
         shards.append((Path(folder), info))
     first, ref = shards[0]
     for folder, info in shards[1:]:
@@ -110,6 +112,26 @@ def check_moments(folder: Path, info: dict) -> None:
                           f"which the merge computes the gallery's spread; {info['dim']} of each), or holds them in "
                           f"another form: it was edited or written by another version. Rebuild it with "
                           f"{shard_command(folder, part['shard_index'], part['num_shards'])}")
+
+
+def check_index_files(folder: Path, info: dict) -> None:
+    """Refuse a shard whose index files are not the ones its job wrote (gallery.json's `index_sha256`): a file
+    copied from another shard of the same row count would merge, and its rows would stand for other references."""
+    part = info["part"]
+    rebuild = f"Rebuild it with {shard_command(folder, part['shard_index'], part['num_shards'])}"
+    recorded = info.get("index_sha256")
+    names = (INDEX, faiss_file(Path(INDEX)).name)
+    if not (isinstance(recorded, dict) and INDEX in recorded and set(recorded) <= set(names)):
+        raise ConfigError(f"the shard in {folder}: {folder / INFO} records no digest of its index files "
+                          f"(index_sha256): it was written by an earlier geoloc or edited. {rebuild}")
+    for name, digest in recorded.items():
+        path = folder / name
+        if not path.is_file():
+            raise ConfigError(f"the shard in {folder}: its index file {path} is missing. {rebuild}")
+        if file_sha256(path) != digest:
+            raise ConfigError(f"the shard in {folder}: its index file {path} is not the one its shard job wrote (its "
+                              f"sha256 differs from the one {folder / INFO} records): it was copied from another "
+                              f"shard or edited. {rebuild}")
 
 
 def shard_index(folder: Path, info: dict) -> GalleryIndex:

@@ -164,7 +164,7 @@ def test_bad_merge_arguments_get_a_clean_message_and_exit_2(monkeypatch, tmp_pat
     cases = {tmp_path / "nope": "no such folder",
              tmp_path / "shards" / "*": r"matched no folder \(the shell passes a pattern that matches nothing as it is\)",
              file: "is a file, not a shard folder",
-             no_faiss: r"its FAISS index .*gallery.faiss is missing.*Rebuild it with python evaluate.py",
+             no_faiss: r"its index file .*gallery.faiss is missing. Rebuild it with python evaluate.py",
              no_moments: r"gallery.json lacks reference_moments .*Rebuild it with python evaluate.py"}
     out = tmp_path / "out"
     for bad, says in cases.items():
@@ -188,3 +188,20 @@ def test_an_out_folder_among_the_shards_is_refused_before_any_work(monkeypatch, 
         assert f"geoloc gallery: out={out} {what} " in err and "outside the shards" in err, err
     assert not loads  # refused before any index was read
     assert {f: {p.name: p.read_bytes() for p in f.iterdir()} for f in folders} == before
+
+
+@pytest.mark.parametrize("backend, copied", [("faiss", "gallery.faiss"), ("torch", "gallery.pt")])
+def test_a_shard_whose_index_file_came_from_another_shard_is_refused(monkeypatch, tmp_path, backend, copied):
+    """Two shards of one row count: shard 2's index file copied from shard 1 merged with exit 0, and the recall was
+    wrong. Each shard's gallery.json records the digest of its own index files."""
+    folders = []
+    for i in range(3):
+        folders.append(tmp_path / f"shard{i}")
+        job(monkeypatch, tmp_path, save=str(folders[-1]), num_shards=3, shard_index=i, backend=backend, kind="flat")
+    shutil.copyfile(folders[1] / copied, folders[2] / copied)
+    out = tmp_path / "out"
+    with pytest.raises(ConfigError, match=rf"the shard in {folders[2]}: its index file {folders[2] / copied} is not "
+                                          r"the one its shard job wrote \(its sha256 differs from the one "
+                                          r".*gallery.json records\).*Rebuild it with"):
+        merge_shards(folders, out)
+    assert not out.exists()

@@ -3,6 +3,7 @@ encoded (geoloc/tasks/crossview/gallery_shards.py; docs/distributed.md)."""
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 from omegaconf import MISSING
@@ -33,6 +34,8 @@ def main(args: list[str]) -> int:
         raise ConfigError(f"unknown gallery action {args[0] if args else '(none)'!r}: geoloc gallery merge ...")
     folders = [a for a in args[1:] if "=" not in a]
     keys = parse_keys([a for a in args[1:] if "=" in a], MergeKeys, "gallery merge")
-    info = merge_shards(folders, keys.out, overwrite=keys.overwrite)
+    info, calibration = merge_shards(folders, keys.out, overwrite=keys.overwrite)
     print(f"{keys.out}: {info['num_references']:,} references ({info['kind']}) from {len(folders)} shards")
+    if not calibration["calibrated"]:
+        print(f"geoloc gallery: {keys.out} is uncalibrated for the top-1 tile: {calibration['why']}", file=sys.stderr)
     return 0

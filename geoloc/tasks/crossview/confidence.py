@@ -16,7 +16,8 @@ protocol, at the refiner's test headings); the feature is the log-odds of the re
 
 calibration.json (saved with the gallery) holds {"calibrated": true, "targets": {"top1": Calibrator, ...}} or
 {"calibrated": false, "why": ...}; "calibrated" is the top-1 confidence's. A refiner's "within_5m" is one more
-entry of "targets" when it was fitted, else "refiner_why" says why not.
+entry of "targets" when it was fitted, else "refiner_why" says why not. A gallery built across jobs has no top-1
+calibrator (ACROSS_JOBS says why) and keeps the refiner's, which shard 0's job fits as a one-job save would.
 """
 
 from __future__ import annotations
@@ -41,6 +42,10 @@ MASS_CLIP = 1e-6  # a mass of exactly 0 or 1 has infinite log-odds
 NO_HOLDOUT = ("no labelled queries were kept out of training (the checkpoint was trained with "
               "dataset.calibration_holdout=0): train with dataset.calibration_holdout=N (e.g. a quarter of the train "
               "queries) and save the gallery again to have a calibrated confidence")
+ACROSS_JOBS = ("the top-1 confidence is fitted against the whole gallery's references, which no shard job holds, and "
+               "the merge does not refit it: a gallery merged from shards is uncalibrated for the top-1 tile (a "
+               "refiner's confidence, fitted without the gallery, is kept from shard 0). Save the gallery in one job "
+               "(python evaluate.py ckpt=CKPT gallery.save=DIR) for a calibrated top-1 confidence")
 
 
 def top1_answers(query: torch.Tensor, reference: torch.Tensor, positives) -> tuple[np.ndarray, np.ndarray]:
@@ -137,6 +142,16 @@ def check_record(record) -> dict:
                              f"{list(calibrator.features)}, where geoloc computes {list(TARGET_FEATURES[target])} "
                              "for it")
     return record
+
+
+def across_jobs(record: dict | None) -> dict:
+    """calibration.json of a gallery built across jobs (a shard's, or the merge of the shards whose shard 0 holds
+    `record`): the top-1 confidence uncalibrated (ACROSS_JOBS), the refiner's as `record` holds it, or why not."""
+    merged = uncalibrated(ACROSS_JOBS)
+    within = calibrators(record).get(WITHIN_5M)
+    if within is not None:
+        return with_refiner(merged, within)
+    return {**merged, "refiner_why": record["refiner_why"]} if record and "refiner_why" in record else merged
 
 
 def calibrators(record: dict | None) -> dict[str, Calibrator]:

@@ -44,8 +44,8 @@ from geoloc.eval.gallery import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, imp
                                  training_points, training_rows)
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
-from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, calibrators, confidence_report, fit_top1,
-                                               index_answers, uncalibrated, with_positives, with_refiner)
+from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, across_jobs, calibrators, confidence_report,
+                                               fit_top1, index_answers, uncalibrated, with_positives, with_refiner)
 from geoloc.tasks.crossview.encode import encode, encode_images
 from geoloc.tasks.crossview.gallery_folder import open_codebook, open_gallery, save_gallery
 from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_refiner
@@ -202,7 +202,7 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
     seen at field of view `fov`. A calibrated gallery adds `ece_top1` and writes run_dir/confidence.png."""
     split = data.split
     if cfg.train_only or cfg.num_shards > 1 or cfg.codebook:
-        return build_part(task, engine, data, batch_size, cfg, meta)
+        return build_part(task, engine, data, batch_size, cfg, meta, held_out)
     if cfg.load:
         saved = open_gallery(cfg.load, meta["model_fingerprint"], meta["ckpt"], device=engine.device, split=split,
                              dataset=meta["dataset"])
@@ -250,10 +250,12 @@ def top1_rows(index: GalleryIndex, query: torch.Tensor):
     return lambda: index.search(query, 1)[1][:, 0].numpy()
 
 
-def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict) -> dict:
+def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, meta: dict,
+               held_out: EvalData | None = None) -> dict:
     """Write a part of a gallery built across jobs: the codebook (train_only), or the index of one shard of the
-    references (or of all of them, num_shards=1) filled from gallery.codebook. Nothing is scored: the merged
-    gallery is (`geoloc gallery merge`, then evaluate.py gallery.load=)."""
+    references (or of all of them, num_shards=1) filled from gallery.codebook; shard 0 also its calibration.json
+    (shard_calibration, from the `held_out` queries). Nothing is scored: the merged gallery is (`geoloc gallery
+    merge`, then evaluate.py gallery.load=)."""
     split, dim = data.split, task.model_cfg.dim
     index = empty_index(cfg, split.num_references, dim)
     codebook = None
@@ -276,7 +278,7 @@ def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig
             reference = reference[torch.argsort(torch.argsort(sample))]
         require_finite(reference, "reference")
         index.train(reference)
-        part, moments = {"role": "codebook"}, None
+        part, moments, calibration = {"role": "codebook"}, None, None
     else:
         rows = shard_rows(split.num_references, cfg.num_shards, cfg.shard_index)
         reference = encode_split(task, engine, data, batch_size, sides=("reference",), rows=rows)["reference"]
@@ -287,13 +289,24 @@ def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig
         # the merge computes the whole gallery's spread (descriptor_spread) from every shard's moments
         r64 = reference.double()
         moments = {"sum": r64.sum(0).tolist(), "sum_sq": (r64 * r64).sum(0).tolist()}
+        calibration = shard_calibration(task, engine, held_out, batch_size) if cfg.shard_index == 0 else None
     if dist.is_main():
         record = {**meta, "reference_spread": descriptor_spread(reference) if len(reference) > 1 else 0.0,
                   "part": {**part, "split_references": split.num_references}, "reference_moments": moments,
                   "codebook_sha256": None if codebook is None else codebook.info["codebook_sha256"]}
         save_gallery(cfg.save, index, split, record, overwrite=cfg.overwrite,
-                     rows=range(0) if cfg.train_only else rows)
+                     rows=range(0) if cfg.train_only else rows, calibration=calibration)
     return {"num_references": len(index)}
+
+
+def shard_calibration(task, engine, held_out: EvalData | None, batch_size: int) -> dict:
+    """calibration.json of a shard, which the merge keeps (confidence.across_jobs): the refiner's "within_5m", which
+    does not depend on the gallery, fitted on the held-out queries as a one-job save fits it; the top-1 confidence
+    uncalibrated, as it needs the whole gallery."""
+    held = (None if held_out is None or task.refiner is None else
+            encode_split(task, engine, held_out, batch_size, refine=True))
+    within = fitted_within(task, held_out, held)
+    return across_jobs(None if within is None else with_refiner({}, within))
 
 
 def fitted_confidence(task, engine, held_out: EvalData | None, batch_size: int, reference: torch.Tensor,

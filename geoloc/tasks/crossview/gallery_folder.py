@@ -112,10 +112,15 @@ def save_gallery(folder: str | Path, index: GalleryIndex, split: RetrievalSplit,
         if info.get("part", {}).get("role") == "shard":  # the merge checks that the files are still these
             info["index_sha256"] = index_digests(tmp / INDEX)
         if calibration is not None:
-            (tmp / CALIBRATION).write_text(json.dumps(calibration, indent=2, allow_nan=False) + "\n")
+            write_calibration(tmp, calibration)
         return info
 
     return write_gallery_folder(folder, fill, overwrite)
+
+
+def write_calibration(folder: Path, record: dict) -> None:
+    """`record` as the calibration.json of the gallery being written in `folder`."""
+    (folder / CALIBRATION).write_text(json.dumps(record, indent=2, allow_nan=False) + "\n")
 
 
 def index_digests(path: Path) -> dict[str, str]:

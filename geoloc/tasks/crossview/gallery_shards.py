@@ -4,9 +4,12 @@ Each shard folder (evaluate.py gallery.num_shards=S gallery.shard_index=i galler
 one contiguous block of the split's references and their references.jsonl; the merge checks that the shards are
 the S blocks of one gallery, each once: the same weights (`model_fingerprint`), split (dataset, split, root,
 `references_sha256`), index kind and knobs and codebook (`codebook_sha256`), shard indices 0..S-1 with rows that
-follow each other, and index files that are the ones each shard job wrote (`index_sha256`). It then joins their indexes with FAISS's `merge_from` (GalleryIndex.merge: the stored codes are
-moved, nothing is re-encoded or re-trained; one shard at a time is read besides the merged index), their references.jsonl in order (whose paths must hash to the split's
-`references_sha256`), takes the queries.jsonl they share, computes the reference spread from their moments, and
+follow each other, and index files that are the ones each shard job wrote (`index_sha256`). It then joins their
+indexes with FAISS's `merge_from` (GalleryIndex.merge: the stored codes are moved, nothing is re-encoded or
+re-trained; one shard at a time is read besides the merged index), their references.jsonl in order (whose paths
+must hash to the split's `references_sha256`), takes the queries.jsonl they share, computes the reference spread
+from their moments, keeps the refiner's confidence that shard 0's job fitted (the top-1 confidence is fitted against
+the whole gallery, which no job held: the merged gallery's calibration.json says it is uncalibrated, and why), and
 writes one gallery folder (gallery_folder.write_gallery_folder: whole or not at all).
 """
 
@@ -20,7 +23,9 @@ from pathlib import Path
 from geoloc.config import ConfigError
 from geoloc.engine.checkpoint import file_sha256
 from geoloc.eval.gallery import GalleryIndex, faiss_file
-from geoloc.tasks.crossview.gallery_folder import INDEX, INFO, read_info, write_gallery_folder
+from geoloc.tasks.crossview.confidence import across_jobs
+from geoloc.tasks.crossview.gallery_folder import (INDEX, INFO, read_calibration, read_info, write_calibration,
+                                                   write_gallery_folder)
 from geoloc.tasks.crossview.places import reference_paths_sha256
 
 # what every shard of one gallery shares: the weights, the split, the index and its codebook
@@ -168,10 +173,12 @@ def merged_spread(shards: list[tuple[Path, dict]]) -> float:
     return float(sum(math.sqrt(max(0.0, (sq - s * s / n) / max(1, n - 1))) for s, sq in zip(total, total_sq)))
 
 
-def merge_shards(folders: list[str | Path], out: str | Path, overwrite: bool = False) -> dict:
-    """Join the shard folders into one gallery folder `out`; returns its gallery.json record."""
+def merge_shards(folders: list[str | Path], out: str | Path, overwrite: bool = False) -> tuple[dict, dict]:
+    """Join the shard folders into one gallery folder `out`; returns its gallery.json and calibration.json records
+    (confidence.across_jobs: the refiner's confidence as shard 0 holds it, the top-1 one uncalibrated)."""
     check_out(Path(out), [Path(f) for f in folders])
     shards = read_shards([Path(f) for f in folders])
+    calibration = across_jobs(read_calibration(shards[0][0]))
     queries = {(folder / "queries.jsonl").read_bytes() for folder, _ in shards}
     if len(queries) != 1:
         raise ConfigError(f"the shards' queries.jsonl differ ({', '.join(str(f) for f, _ in shards)}): they were "
@@ -195,7 +202,8 @@ def merge_shards(folders: list[str | Path], out: str | Path, overwrite: bool = F
                               f"references (references_sha256 differs): a shard was edited or written by another "
                               f"version. Rebuild the shards ({', '.join(str(f) for f, _ in shards)})")
         (tmp / "queries.jsonl").write_bytes(next(iter(queries)))
+        write_calibration(tmp, calibration)
         return {**info, "num_references": len(index), "reference_spread": merged_spread(shards),
                 "merged_from": [str(f.resolve()) for f, _ in shards]}
 
-    return write_gallery_folder(out, fill, overwrite)
+    return write_gallery_folder(out, fill, overwrite), calibration

@@ -278,3 +278,35 @@ def test_the_gallery_path_reports_the_refiner_keys_and_values_of_the_plain_evalu
         gallery = crossview_gallery.evaluate(task, engine, data, 4, GalleryConfig(**cfg), META)
         assert {k: gallery[k] for k in plain} == pytest.approx(plain), cfg
         assert 0 < gallery["R@1"] < 1  # some top-1 tiles are wrong: end to end is not the fine-grained protocol
+
+
+def test_a_gallery_merged_from_shards_keeps_the_refiners_confidence_and_says_why_the_top1_is_uncalibrated(
+        monkeypatch, tmp_path, capsys):
+    """A gallery built across jobs had no calibration.json, /health said it was saved without one, and nothing
+    warned at merge time. The refiner's calibration does not depend on the gallery: shard 0's job fits it and the
+    merge keeps it; the top-1 confidence, fitted against the whole gallery, is uncalibrated and every place says
+    why."""
+    from geoloc.apps.localize import Localizer
+    from geoloc.cli import main as geoloc
+    from geoloc.tasks.crossview.confidence import ACROSS_JOBS
+
+    (tmp_path / "run").mkdir()
+    one_job = tmp_path / "one_job"
+    run_gallery(monkeypatch, tmp_path, True, save=str(one_job))
+    shards = [tmp_path / f"shard{i}" for i in range(2)]
+    for i, folder in enumerate(shards):
+        run_gallery(monkeypatch, tmp_path, True, save=str(folder), num_shards=2, shard_index=i)
+    merged = tmp_path / "merged"
+    assert geoloc(["gallery", "merge", *map(str, shards), f"out={merged}"]) == 0
+    assert f"geoloc gallery: {merged} is uncalibrated for the top-1 tile: {ACROSS_JOBS}" in capsys.readouterr().err
+    whole = json.loads((one_job / "calibration.json").read_text())
+    record = json.loads((merged / "calibration.json").read_text())
+    assert record == {"calibrated": False, "why": ACROSS_JOBS, "targets": {WITHIN_5M: whole["targets"][WITHIN_5M]}}
+    scored = {f: run_gallery(monkeypatch, tmp_path, False, load=str(f))[0] for f in (one_job, merged)}
+    assert scored[merged]["ece_within_5m"] == pytest.approx(scored[one_job]["ece_within_5m"])
+    assert "ece_top1" in scored[one_job] and "ece_top1" not in scored[merged]
+    encoder = SimpleNamespace(device=torch.device("cpu"), data=SimpleNamespace(heading_steps=36),
+                              refiner=GaussianGuess(), refine_config=RefineConfig(),
+                              refiner_condition=refiner_condition(GaussianGuess(), RefineConfig()))
+    health = Localizer(encoder, None, None, {"query_view": "panorama"}, calibration=record).calibration_info()
+    assert health["calibrated"] is False and health["why"] == ACROSS_JOBS and health[WITHIN_5M]["calibrated"]

@@ -44,6 +44,7 @@ from geoloc.eval.gallery import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, imp
                                  training_points, training_rows)
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
+from geoloc.eval.scoring import top_k
 from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, across_jobs, calibrators, confidence_report,
                                                fit_top1, index_answers, uncalibrated, with_positives, with_refiner)
 from geoloc.tasks.crossview.encode import encode, encode_images
@@ -238,9 +239,9 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
     if cfg.save and not built:
         warnings.warn(f"gallery.save={cfg.save}: nothing saved, the reference descriptors collapsed")
     confidence = scored_confidence(record, built[0], query, split, run_dir) if built else {}
-    # a collapsed gallery was not built: its queries' top-1 tiles are the exact ranking's, as validation's
-    searched = built[0] if built else GalleryIndex(reference.shape[1]).add(reference)
-    return {**metrics, **confidence, **scored_refiner(record, task, split, desc, top1_rows(searched, query), run_dir),
+    # a collapsed gallery was not built: its queries' top-1 tiles are then the exact ranking's, as validation's
+    top1 = top1_rows(built[0], query) if built else lambda: top_k(query, reference, 1)[1][:, 0].numpy()
+    return {**metrics, **confidence, **scored_refiner(record, task, split, desc, top1, run_dir),
             "num_references": len(reference)}
 
 

@@ -11,9 +11,10 @@ A FAISS index's codes lie in gallery.faiss beside gallery.pt (GalleryIndex.save)
 
 A part of a gallery built across jobs (gallery.py `build_part`) is such a folder too, with a `part` record in
 gallery.json: a codebook (`role: codebook`, no rows, its index file's `codebook_sha256`) or a shard (`role: shard`,
-`shard_index`, `num_shards`, its rows `start`..`stop` of the split's `split_references`, the
-`codebook_sha256` it was filled from, and `index_sha256`: the digest of each of its own index files). `open_gallery` refuses parts; `open_codebook` opens a codebook for a shard;
-`geoloc gallery merge` joins shards into a gallery (gallery_shards.py).
+`shard_index`, `num_shards`, its rows `start`..`stop` of the split's `split_references`, the `codebook_sha256` it
+was filled from, and `index_sha256`: the digest of each of its own index files). `open_gallery` refuses parts;
+`open_codebook` opens a codebook for a shard; `geoloc gallery merge` joins shards into a gallery
+(gallery_shards.py).
 
 Saving writes every file into a hidden folder beside DIR (`.DIR.<random>.tmp`) and renames that folder to DIR, so
 DIR holds a whole gallery or none: an interrupted save leaves the old gallery as it was. An existing gallery is

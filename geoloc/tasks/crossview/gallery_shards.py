@@ -38,6 +38,11 @@ def shard_command(folder, index, count) -> str:
             f"gallery.shard_index={index} gallery.save={folder} [gallery.codebook=CODEBOOK_DIR]")
 
 
+def rebuild_shard(folder: Path, info: dict) -> str:
+    """The way out for a shard folder that cannot be merged: its job run again."""
+    return f"Rebuild it with {shard_command(folder, info['part']['shard_index'], info['part']['num_shards'])}"
+
+
 def read_shards(folders: list[Path]) -> list[tuple[Path, dict]]:
     """(folder, gallery.json) of each shard, in shard order, checked to be the shards of one gallery, each once."""
     if not folders:
@@ -112,18 +117,15 @@ def check_moments(folder: Path, info: dict) -> None:
     moments = info.get("reference_moments")
     if not (isinstance(moments, dict) and all(isinstance(moments.get(k), list) and len(moments[k]) == info["dim"]
                                               for k in ("sum", "sum_sq"))):
-        part = info["part"]
         raise ConfigError(f"{folder / INFO} lacks reference_moments (the sums of the shard's descriptors, from "
                           f"which the merge computes the gallery's spread; {info['dim']} of each), or holds them in "
-                          f"another form: it was edited or written by another version. Rebuild it with "
-                          f"{shard_command(folder, part['shard_index'], part['num_shards'])}")
+                          f"another form: it was edited or written by another version. {rebuild_shard(folder, info)}")
 
 
 def check_index_files(folder: Path, info: dict) -> None:
     """Refuse a shard whose index files are not the ones its job wrote (gallery.json's `index_sha256`): a file
     copied from another shard of the same row count would merge, and its rows would stand for other references."""
-    part = info["part"]
-    rebuild = f"Rebuild it with {shard_command(folder, part['shard_index'], part['num_shards'])}"
+    rebuild = rebuild_shard(folder, info)
     recorded = info.get("index_sha256")
     names = (INDEX, faiss_file(Path(INDEX)).name)
     if not (isinstance(recorded, dict) and INDEX in recorded and set(recorded) <= set(names)):
@@ -145,9 +147,7 @@ def shard_index(folder: Path, info: dict) -> GalleryIndex:
     try:
         return GalleryIndex.load(folder / INDEX, mmap=False)
     except (FileNotFoundError, ValueError) as err:
-        part = info["part"]
-        raise ConfigError(f"the shard in {folder}: {err}. Rebuild it with "
-                          f"{shard_command(folder, part['shard_index'], part['num_shards'])}") from None
+        raise ConfigError(f"the shard in {folder}: {err}. {rebuild_shard(folder, info)}") from None
 
 
 def check_out(out: Path, folders: list[Path]) -> None:

@@ -43,3 +43,11 @@ def check_monitor(monitor: str, plan: list[KeySet], where: str) -> None:
         raise ConfigError(f"trainer.monitor={monitor!r} is not a metric that validation reports {where}: it reports "
                           f"{', '.join(keys)}. Give one of them (with trainer.monitor_mode=min for an error in metres "
                           "or degrees)")
+
+
+def known_mode(key: str) -> str | None:
+    """"max" or "min", the better direction of a key some cross-view validation reports (KeySet.mode), or None for
+    a key it never reports."""
+    every = [recall_keys(KS), HIT_RATE_KEYS, AP_KEYS, METRE_KEYS, *heading_plan(KS),
+             *fine_plan(None, RefineConfig(orientation_noise_deg=180.0))]
+    return next((keys.mode(key) for keys in every if key in keys.worst), None)

@@ -61,6 +61,29 @@ def test_the_split_is_by_area_and_deterministic(own, axis):
                                                   test_fraction=0.4).queries == test.queries
 
 
+FIJI = (-16.5, 179.9995)  # 53 m west of the 180° meridian: a grid around it lies on both sides
+
+
+def test_a_folder_across_the_180_meridian_reads_as_the_same_folder_elsewhere(tmp_path):
+    """Tiles and queries either side of the meridian (a query 15 m from its tile was refused as outside it, and the
+    area split was drawn in a frame broken at the meridian): positives, tile positions, the split and its line are
+    those of the same layout around ORIGIN."""
+    tiles = TILES - [50.0, 0.0]  # east -50 to 100 m: the meridian lies 53 m east of FIJI
+    queries = tiles + [15.0, 0.0]
+    far, near = (write_folder(tmp_path / name, tiles, queries, aerial=20, pano=(8, 32), origin=origin)
+                 for name, origin in (("far", ORIGIN), ("near", FIJI)))
+    lons = np.loadtxt(near / "tiles.csv", delimiter=",", skiprows=1, usecols=2)
+    assert (lons > 179.99).any() and (lons < -179.99).any()  # both sides, each in [-180, 180]
+    for split in ("all", "train", "test"):
+        one, other = (folder(str(root), split, tile_extent_m=40.0, relevance="nearest_tile", test_fraction=0.5)
+                      for root in (far, near))
+        assert one.name == other.name and [p.name for p in one.references] == [p.name for p in other.references]
+        assert [p.name for p in one.queries] == [p.name for p in other.queries]
+        assert other.positives.tolist() == one.positives.tolist()
+        np.testing.assert_allclose(other.query_tile_px, one.query_tile_px, atol=1e-3)
+        np.testing.assert_allclose(other.query_tile_px[:, 1], 10 + 15.0 / 2, atol=1e-3)  # 15 m east, 2 m a pixel
+
+
 def vpr_name(east, north, zone=32, letter="U", k=0):
     lat, lon = offset_to_latlon(ORIGIN, east, north)
     return f"@{500000 + east:.2f}@{5400000 + north:.2f}@{zone}@{letter}@{lat:.5f}@{lon:.5f}@pano{k}@@@@@@@@.jpg"

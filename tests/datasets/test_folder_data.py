@@ -4,6 +4,7 @@ refusal names the file, the line and what to do."""
 
 from __future__ import annotations
 
+import os
 import re
 
 import numpy as np
@@ -106,6 +107,19 @@ def test_vpr_file_names_need_no_csv_and_one_utm_zone(own):
     odd.rename(own / "tiles" / "plain.jpg")
     with pytest.raises(ValueError, match=r"plain.jpg' is not a VPR name .*Write .*tiles.csv"):
         folder(str(own), "all", tile_extent_m=40.0)
+
+
+def test_a_file_name_that_is_not_utf8_is_refused_when_the_folder_is_read(own):
+    """A Latin-1 name passed the reader, then `gallery.save=` died after encoding with a bare UnicodeEncodeError."""
+    for side, positions in (("tiles", TILES), ("queries", QUERIES)):
+        name_as(own, side, [vpr_name(*p, k=i) for i, p in enumerate(positions)])
+    odd = sorted((own / "tiles").iterdir())[0]
+    raw = os.fsencode(odd.name).replace(b"pano0", b"caf\xe9")  # é in Latin-1: not UTF-8
+    os.rename(odd, os.path.join(os.fsencode(own / "tiles"), raw))
+    with pytest.raises(ValueError, match=re.escape(f"{own / 'tiles'}: the file name {raw!r} is not UTF-8")):
+        folder(str(own), "all", tile_extent_m=40.0)
+    (own / "tiles" / os.fsdecode(raw)).rename(own / "tiles" / vpr_name(*TILES[0], k=0).replace("pano0", "café"))
+    assert folder(str(own), "all", tile_extent_m=40.0).num_references == len(TILES)  # the same name in UTF-8 reads
 
 
 def name_as(own, side, names):

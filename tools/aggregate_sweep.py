@@ -1,13 +1,16 @@
 """Gather a Hydra sweep's metrics.jsonl files into markdown tables, mean ± std over seeds.
 
     python tools/aggregate_sweep.py multirun/crossview/2025-01-01_12-00-00_4242 [--at last|best|both] [--monitor R@1]
-        [--metrics R@1,R@5,R@10,R@1%] [--out FILE]
+        [--monitor-mode max|min] [--metrics R@1,R@5,R@10,R@1%] [--out FILE]
 
 Each run dir (any folder below MULTIRUN_DIR with a metrics.jsonl) gives its validation records (the keys `val/...`),
 each tied to its epoch by the end-of-epoch row (`train/epoch_...`) the trainer writes after it. `--at last` takes
 each run's last record; `--at best` the record of its best epoch: the best value of the metric the run's
-trainer monitored (logged in metrics.jsonl as run/monitor and run/monitor_mode; `--monitor` picks another, highest
-first), the earliest of equal ones, as the trainer picks best.pt; `--at both` (default) prints both tables. The
+trainer monitored (logged in metrics.jsonl as run/monitor and run/monitor_mode), the earliest of equal ones, as the
+trainer picks best.pt; `--at both` (default) prints both tables, the best one titled with what it picked. `--monitor`
+picks another metric, its better direction from `--monitor-mode`, else the mode the run recorded for that metric,
+else the direction geoloc's metric declares (an error in metres or degrees: the lowest; a share such as recall: the
+highest); a metric none of them knows is refused, naming --monitor-mode. The
 epoch column is the mean ± std of those epochs, counted from 0 as in metrics.jsonl, checkpoints and the trainer's `[epoch N]` lines.
 Runs are grouped by their job's Hydra overrides (`.hydra/overrides.yaml` of the job folder, which MMDIP's phase1/
 and phase2/ logs sit below; else the folder's name) minus `seed=`, and by phase; overrides that every run shares
@@ -29,7 +32,8 @@ from pathlib import Path
 import yaml
 
 AT = ("last", "best")
-TITLES = {"last": "last epoch", "best": "best epoch (highest {monitor} of each run)"}
+TITLES = {"last": "last epoch", "best": "best epoch ({picked} of each run)"}
+EXTREMES = {"max": "highest", "min": "lowest"}
 
 
 def rows(metrics_file: Path) -> tuple[list[dict], bool]:
@@ -85,9 +89,27 @@ def recorded_monitor(metrics_file: Path) -> tuple[str, str] | None:
     return None
 
 
-def pick(records: list[dict[str, float]], at: str, monitor: str, source: Path | None = None, mode: str = "max"):
+def monitor_of(metrics_file: Path, monitor: str | None = None,
+               mode: str | None = None) -> tuple[str | None, str | None]:
+    """(metric, "max" | "min") that picks a run's best epoch: the run's own (recorded_monitor; (None, None) if it
+    logged none) unless `monitor` names another, whose direction is `mode`, else the one the run recorded for it,
+    else the one geoloc's metric declares (geoloc.tasks.crossview.validation_keys.known_mode), else None."""
+    recorded = recorded_monitor(metrics_file)
+    if monitor is None:
+        return recorded or (None, None)
+    if mode is None and recorded is not None and recorded[0] == monitor:
+        mode = recorded[1]
+    if mode is None:
+        from geoloc.tasks.crossview.validation_keys import known_mode
+
+        mode = known_mode(monitor)
+    return monitor, mode
+
+
+def pick(records: list[dict[str, float]], at: str, monitor: str, source: Path | None = None,
+         mode: str | None = "max"):
     """The last record, or the best one: the highest (mode max) or lowest (min) `monitor`, the earliest of equal
-    ones (the trainer's strict comparison)."""
+    ones (the trainer's strict comparison); mode None: refused, naming --monitor-mode."""
     if at == "last":
         return records[-1]
     scored = [r for r in records if monitor in r]
@@ -95,6 +117,10 @@ def pick(records: list[dict[str, float]], at: str, monitor: str, source: Path | 
         keys = sorted({k for r in records for k in r} - {"epoch"})
         raise ValueError(f"{source or 'a run'} has no val/{monitor} to pick the best epoch by; it logs {keys}. "
                          f"Pass --monitor with one of those, or --at last.")
+    if mode is None:
+        raise ValueError(f"--monitor {monitor}: whether higher or lower is better is neither recorded in "
+                         f"{source or 'the run'} nor declared by geoloc's metrics; pass --monitor-mode max (higher is "
+                         "better) or min (lower is better)")
     sign = 1.0 if mode == "max" else -1.0
     return max(scored, key=lambda r: sign * r[monitor])  # max() returns the first of equal maxima
 
@@ -133,9 +159,9 @@ def planned_epochs(job: Path, run_dir: Path) -> int | None:
 
 
 def collect(multirun_dir: Path, at: str = "last", monitor: str | None = None,
-            problems: list[str] | None = None) -> list[tuple[list[str], dict]]:
+            problems: list[str] | None = None, mode: str | None = None) -> list[tuple[list[str], dict]]:
     """[(overrides, the run's last or best validation record)] for each complete run that validated. The best
-    epoch is picked by `monitor` (max), else by the metric and mode each run recorded. Jobs that failed (no
+    epoch is picked by monitor_of(its metrics.jsonl, monitor, mode). Jobs that failed (no
     metrics.jsonl, or no validation) and runs that stopped before their last epoch are left out of the tables and
     described in `problems`, so no job is dropped without a word."""
     problems = [] if problems is None else problems
@@ -154,11 +180,11 @@ def collect(multirun_dir: Path, at: str = "last", monitor: str | None = None,
             problems.append(f"{job}{phase}: partial, validated up to epoch {records[-1]['epoch']} of "
                             f"{planned if planned is not None else '?'}{' (its last line was cut)' if cut else ''}")
             continue
-        chosen, mode = (monitor, "max") if monitor else (recorded_monitor(metrics_file) or (None, "max"))
+        chosen, direction = monitor_of(metrics_file, monitor, mode)
         if at != "last" and chosen is None:
             raise ValueError(f"{metrics_file} records no monitored metric (a run by an older geoloc): pass --monitor")
         overrides = run_overrides(job) + ([f"phase={run_dir.name}"] if phase else [])
-        runs.append((overrides, pick(records, at, chosen, metrics_file, mode)))
+        runs.append((overrides, pick(records, at, chosen, metrics_file, direction)))
     for hydra in sorted(multirun_dir.rglob(".hydra")):
         if hydra.parent not in seen and hydra.parent != multirun_dir:
             problems.append(f"{hydra.parent}: failed, no metrics.jsonl (see the job's log there)")
@@ -201,21 +227,31 @@ def table(groups: dict[str, list[dict[str, float]]], metrics: list[str] | None =
     return "\n".join(lines)
 
 
-def tables(multirun_dir: Path, at: str = "both", monitor: str | None = None, metrics: list[str] | None = None) -> str:
+def picked(multirun_dir: Path, monitor: str | None = None, mode: str | None = None) -> str:
+    """What the best-epoch table picks, in words: "highest R@1", "lowest fine_median_m", or, where the runs differ,
+    each run's own."""
+    chosen = {monitor_of(f, monitor, mode) for f in multirun_dir.rglob("metrics.jsonl")}
+    if len(chosen) != 1 or None in next(iter(chosen)):
+        return "the best value of the metric each run monitored, in its own direction"
+    metric, direction = next(iter(chosen))
+    return f"{EXTREMES[direction]} {metric}"
+
+
+def tables(multirun_dir: Path, at: str = "both", monitor: str | None = None, metrics: list[str] | None = None,
+           mode: str | None = None) -> str:
     """One table for `at` = last or best; for both, each under a markdown heading. Failed and partial jobs are
     listed after the tables."""
     problems: list[str] = []
     if at in AT:
-        runs = collect(multirun_dir, at, monitor, problems)
+        runs = collect(multirun_dir, at, monitor, problems, mode)
         text = table(group(runs), metrics, problems)
     else:
-        recorded = {recorded_monitor(f) for f in multirun_dir.rglob("metrics.jsonl")} - {None}
-        named = monitor or (next(iter(recorded))[0] if len(recorded) == 1 else "the monitored metric")
         parts = []
         for one in AT:
             problems = []
-            runs = collect(multirun_dir, one, monitor, problems)
-            parts.append(f"### {TITLES[one].format(monitor=named)}\n\n" + table(group(runs), metrics, problems))
+            runs = collect(multirun_dir, one, monitor, problems, mode)  # refuses first what cannot be picked
+            title = TITLES[one].format(picked=picked(multirun_dir, monitor, mode))
+            parts.append(f"### {title}\n\n" + table(group(runs), metrics, problems))
         text = "\n\n".join(parts)
     if problems:
         text += "\n\nNot in the tables:\n" + "\n".join(f"- {p}" for p in problems)
@@ -229,12 +265,18 @@ def main(argv: list[str] | None = None) -> str:
                         help="each run's last validation, its best epoch's, or both tables (default)")
     parser.add_argument("--monitor", default=None,
                         help="the metric that picks the best epoch (default: the one each run's trainer monitored)")
+    parser.add_argument("--monitor-mode", choices=["max", "min"], default=None,
+                        help="with --monitor: whether its highest or lowest value is best (default: the mode the runs "
+                             "recorded for it, else the direction geoloc's metric declares)")
     parser.add_argument("--metrics", default=None, help="comma-separated, e.g. R@1,R@5 (default: all R@ keys)")
     parser.add_argument("--out", type=Path, default=None, help="also write the tables to this file")
     args = parser.parse_args(argv)
     if not args.multirun_dir.is_dir():
         parser.error(f"{args.multirun_dir} is not a directory")
-    text = tables(args.multirun_dir, args.at, args.monitor, args.metrics.split(",") if args.metrics else None)
+    if args.monitor_mode and not args.monitor:
+        parser.error("--monitor-mode goes with --monitor (each run's own monitor comes with its recorded mode)")
+    text = tables(args.multirun_dir, args.at, args.monitor, args.metrics.split(",") if args.metrics else None,
+                  args.monitor_mode)
     print(text)
     if args.out:
         args.out.write_text(text + "\n")

@@ -82,6 +82,18 @@ def default_out(ckpt: str) -> Path:
     return path.parent / f"robustness_{path.stem}"
 
 
+def refuse_out_that_is_no_folder(out: Path) -> None:
+    """out= is the folder the tables go in: where it, or a folder above it, is an existing file, refused before
+    anything is evaluated. overwrite=true replaces the tables in a folder, never another file."""
+    for path in (out, *out.parents):
+        if path.is_dir():
+            return
+        if path.exists():
+            raise ConfigError(f"out={out}: {path} is a file, not a folder; robustness writes {TABLE_MD} and "
+                              f"{TABLE_JSON} into the folder out= names (overwrite=true replaces those tables, "
+                              "never another file). Choose another out=")
+
+
 def write_whole(path: Path, text: str, overwrite: bool) -> None:
     """`text` into `path` through a temp file beside it: whole or not at all; an existing file is kept unless
     `overwrite`, even one that appeared while the table was computed."""
@@ -115,6 +127,7 @@ def robustness(args: list[str]) -> dict:
     own, dataset, cross = split_args(args)
     cfg = checked(OmegaConf.from_dotlist(own), RobustnessConfig, "robustness")
     out = Path(cfg.out) if cfg.out else default_out(cfg.ckpt)
+    refuse_out_that_is_no_folder(out)
     targets = [out / TABLE_MD, out / TABLE_JSON]
     taken = [str(p) for p in targets if p.exists()]
     if taken and not cfg.overwrite:  # before anything is evaluated

@@ -22,24 +22,41 @@ def haversine_m(a, b) -> np.ndarray:
     return 2 * EARTH_RADIUS_M * np.arcsin(np.sqrt(np.clip(h, 0.0, 1.0)))
 
 
+def wrapped_degrees(longitude) -> np.ndarray:
+    """Longitudes (or their differences) in degrees, brought into [-180, 180] by whole turns: 179.9 + 0.2 is -179.9,
+    and two places either side of the 180° meridian differ by a fraction of a degree, not by nearly 360. Values
+    already in range are returned exactly as they are."""
+    longitude = np.asarray(longitude, np.float64)
+    return np.where(np.abs(longitude) <= 180.0, longitude, (longitude + 180.0) % 360.0 - 180.0)
+
+
 def offset_to_latlon(origin, east_m, north_m) -> np.ndarray:
     """(lat, lon) degrees of points east_m / north_m metres from origin (lat, lon), on the local tangent plane:
-    lat = lat0 + north / R, lon = lon0 + east / (R cos lat0). -> (..., 2). Good to a few centimetres within a
-    kilometre of the origin, which is all the synthetic cities span."""
+    lat = lat0 + north / R, lon = lon0 + east / (R cos lat0), wrapped into [-180, 180]. -> (..., 2). Good to a few
+    centimetres within a kilometre of the origin, which is all the synthetic cities span."""
     lat0, lon0 = (float(v) for v in origin)
     east, north = np.broadcast_arrays(np.asarray(east_m, np.float64), np.asarray(north_m, np.float64))
     lat = lat0 + np.degrees(north / EARTH_RADIUS_M)
-    lon = lon0 + np.degrees(east / (EARTH_RADIUS_M * np.cos(np.radians(lat0))))
+    lon = wrapped_degrees(lon0 + np.degrees(east / (EARTH_RADIUS_M * np.cos(np.radians(lat0)))))
     return np.stack([lat, lon], -1)
 
 
 def latlon_to_offset(origin, latlon) -> np.ndarray:
-    """The inverse of offset_to_latlon: (..., 2) (lat, lon) degrees -> (..., 2) (east, north) metres."""
+    """The inverse of offset_to_latlon: (..., 2) (lat, lon) degrees -> (..., 2) (east, north) metres, the
+    longitude difference taken the short way round (across the 180° meridian where that is shorter)."""
     lat0, lon0 = (float(v) for v in origin)
     latlon = np.asarray(latlon, np.float64)
     north = np.radians(latlon[..., 0] - lat0) * EARTH_RADIUS_M
-    east = np.radians(latlon[..., 1] - lon0) * EARTH_RADIUS_M * np.cos(np.radians(lat0))
+    east = np.radians(wrapped_degrees(latlon[..., 1] - lon0)) * EARTH_RADIUS_M * np.cos(np.radians(lat0))
     return np.stack([east, north], -1)
+
+
+def centre_latlon(latlon) -> np.ndarray:
+    """(2,) the mean position of (N, 2) (lat, lon) degrees, the longitudes averaged as offsets from the first (the
+    short way round), so places either side of the 180° meridian have their centre among them, not at 0°."""
+    latlon = np.asarray(latlon, np.float64)
+    lon0 = latlon[0, 1]
+    return np.array([latlon[:, 0].mean(), float(wrapped_degrees(lon0 + wrapped_degrees(latlon[:, 1] - lon0).mean()))])
 
 
 def distance_m(a, b, kind: str) -> np.ndarray:

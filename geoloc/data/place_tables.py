@@ -17,6 +17,7 @@ Without a CSV, the file names give the positions the VPR tools' way (geoloc/data
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,8 +53,24 @@ class PlaceTable:
 
 
 def image_files(folder: Path) -> list[Path]:
-    """Every image (IMAGE_SUFFIXES, any case) under `folder`, in sorted path order."""
-    return sorted(p for p in Path(folder).rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    """Every image (IMAGE_SUFFIXES, any case) under `folder`, in sorted path order; each name must be UTF-8."""
+    found = sorted(p for p in Path(folder).rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    for path in found:
+        require_utf8_name(path, folder)
+    return found
+
+
+def require_utf8_name(path: Path, folder: Path) -> None:
+    """A ValueError naming `path` when its name under `folder` is not UTF-8 (Python reads such bytes as lone
+    surrogates). The names go into UTF-8 text (a gallery's reference list and its sha256, the service's answers and
+    page), which cannot hold them, so they are refused here rather than carried as bytes through every writer."""
+    name = Path(path).relative_to(folder).as_posix()
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{folder}: the file name {os.fsencode(name)!r} is not UTF-8: geoloc writes image names into "
+                         "UTF-8 files (a saved gallery's references, the service's answers), which cannot hold it. "
+                         f"Rename it in UTF-8 (e.g. convmv -f latin1 -t utf-8 -r --notest {folder})") from None
 
 
 def read_places(folder: Path, table: Path) -> PlaceTable:

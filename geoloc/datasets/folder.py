@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.config import ConfigError
-from geoloc.data.geo import distance_m, latlon_to_offset
+from geoloc.data.geo import centre_latlon, distance_m, latlon_to_offset
 from geoloc.data.place_tables import PlaceTable, read_places
 from geoloc.data.relevance import RADIUS_M
 from geoloc.data.retrieval_split import RetrievalSplit
@@ -101,7 +101,7 @@ def folder_split(root, split: str, tile_extent_m: float | None, metres_per_px: f
         raise ValueError(f"{queries.source} is in UTM zone {queries.zone} and {tiles.source} in {tiles.zone}: give "
                          "both in one zone, or as lat,lon")
     kind = tiles.kind
-    origin = tiles.positions.mean(0)
+    origin = centre_latlon(tiles.positions) if kind == "latlon" else tiles.positions.mean(0)
     tile_en = local_metres(kind, tiles.positions, origin)
     keep = np.ones(len(tiles.paths), bool)
     name = f"folder/{split}"

@@ -26,7 +26,8 @@ which set a folder holds. The split records it (RetrievalSplit.tile_labels), and
 
 geoloc's synthetic vigor tree (geoloc/synthetic/vigor_layout.py) renders tiles of its own size and scale, which its
 marker gives (geoloc.synthetic.tile_geometry), and writes the offsets unrounded in ROOT/geoloc_offsets.json
-(geoloc/data/tile_offsets.py), which are used instead of the rounded ones when present.
+(geoloc/data/tile_offsets.py), which are used instead of the rounded ones when present. A tree holding that file
+without a complete marker is an unfinished render, and is refused.
 
 Settings, as VIGOR's dataloader.py reads them:
 - same_area: each of the four cities' same_area_balanced_{train,test}.txt;
@@ -87,6 +88,12 @@ def vigor_split(root, setting: str = "same_area", split: str = "test", cities=No
         raise ValueError(f"VIGOR cities must be a non-empty list without repeats, got {list(cities)}")
     tile_px, synthetic_scale = tile_frame(root, TILE_PX)
     truth = read_offsets(root)
+    if truth is not None and synthetic_scale is None:  # geoloc's own file, which no release holds
+        from geoloc.synthetic.generate import MARKER
+        from geoloc.synthetic.geometry import unfinished_render
+
+        raise ValueError(unfinished_render(root, f"it holds {OFFSETS_FILE}, which only geoloc's renderer writes, but "
+                                                 f"no complete {MARKER}"))
     references, ref_latlon, ref_scale, queries, q_latlon, positives, semi, offsets = [], [], [], [], [], [], [], []
     label_sets = {}
     for city in cities:

@@ -24,6 +24,11 @@ class KeySet:
 
     worst: Mapping[str, float]
 
+    def mode(self, key: str) -> str:
+        """"max" where a larger value of `key` is better, else "min": a share (recall, hit rate, AP, within X), whose
+        worst value is 0, is better higher; an error (metres, degrees, ECE), whose worst is its largest, lower."""
+        return "max" if self.worst[key] == 0.0 else "min"
+
     def values(self, computed: Mapping[str, float]) -> dict[str, float]:
         """``computed`` as plain floats in the declared order; a RuntimeError if its keys are not the declared ones."""
         if set(computed) != set(self.worst):

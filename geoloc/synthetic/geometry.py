@@ -17,8 +17,9 @@ from .tiles import TileGrid
 
 
 def tile_geometry(root) -> tuple[int, float] | None:
-    """(tile side in pixels, ground metres per pixel) of the synthetic dataset at `root`, or None when root holds
-    no complete synthetic dataset of a layout with camera tiles (a real dataset, an unfinished render)."""
+    """(tile side in pixels, ground metres per pixel) of the synthetic dataset at `root`, or None when root holds no
+    synthetic dataset of a layout with camera tiles (a real dataset). A marker that is not complete (a render stopped
+    part-way) is refused: read as a release, the tree would get the release's frame and scale in silence."""
     path = Path(root) / MARKER
     if not path.is_file():
         return None
@@ -30,8 +31,14 @@ def tile_geometry(root) -> tuple[int, float] | None:
         raise ValueError(f"{path} is not a readable geoloc synthetic marker ({err}); render the dataset again "
                          "into an empty folder") from err
     if not marker.get("complete"):
-        return None
+        raise ValueError(unfinished_render(root, f"its {MARKER} says the render did not complete"))
     return layout_geometry(layout, cfg, marker.get("options"))
+
+
+def unfinished_render(root, why: str) -> str:
+    """The refusal of a synthetic tree whose render did not finish, saying `why` it is one and what to do."""
+    return (f"{root} is an unfinished geoloc synthetic render ({why}); render it again into an empty folder (delete "
+            "this one), or let the render that is writing it finish")
 
 
 def layout_geometry(layout: str, cfg: SynthConfig, options: dict | None = None) -> tuple[int, float] | None:

@@ -12,6 +12,7 @@ The other cities, the split files and the offsets are linked to the source, whic
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,6 +26,7 @@ def relight_city(source, out, city: str, sun_elevation: float | None = None, sun
                  season: float | None = None, panoramas: bool = True) -> Path:
     """Write OUT: the vigor dataset at `source` with `city` rendered again under the changed conditions (None
     keeps the city's own). -> OUT."""
+    _check_conditions(sun_elevation, sun_azimuth, season)
     source, out = Path(source).resolve(), Path(out)
     marker = _vigor_marker(source)
     if out.exists() and any(out.iterdir()):
@@ -33,10 +35,6 @@ def relight_city(source, out, city: str, sun_elevation: float | None = None, sun
     names = CITY_NAMES[:opts.cities]
     if city not in names:
         raise ValueError(f"{source} has the cities {list(names)}, not {city!r}")
-    if sun_elevation is not None and not 0.0 < sun_elevation <= 90.0:
-        raise ValueError(f"sun_elevation must be in (0, 90] degrees, got {sun_elevation}")
-    if season is not None and not 0.0 <= season <= 1.0:
-        raise ValueError(f"season must be in [0, 1] (0 summer .. 1 winter), got {season}")
     cfg, seed = SynthConfig(**marker["config"]), int(marker["seed"])
     own = build_city(cfg, opts.grid, seed, names.index(city))
     sun = own.aerial.sun
@@ -66,6 +64,17 @@ def relight_city(source, out, city: str, sun_elevation: float | None = None, sun
     # written last, as the renderer does: a folder without it is unfinished (geoloc.synthetic.tile_geometry)
     write_marker(out, {**marker, "relit": relit}, complete=True)
     return out
+
+
+def _check_conditions(sun_elevation, sun_azimuth, season) -> None:
+    """Each condition given is a finite number in its range, checked before anything is read or written: a sun of
+    NaN or infinite azimuth lights no pixel, and the render would be black tiles under a marker holding NaN."""
+    ranges = {"sun_elevation": (sun_elevation, "(0, 90] degrees", lambda v: 0.0 < v <= 90.0),
+              "sun_azimuth": (sun_azimuth, "[0, 360] degrees clockwise from north", lambda v: 0.0 <= v <= 360.0),
+              "season": (season, "[0, 1] (0 summer .. 1 winter)", lambda v: 0.0 <= v <= 1.0)}
+    for name, (value, allowed, inside) in ranges.items():
+        if value is not None and not (math.isfinite(value) and inside(value)):
+            raise ValueError(f"{name} must be a number in {allowed}, got {value}; nothing was written")
 
 
 def _vigor_marker(source: Path) -> dict:

@@ -82,5 +82,12 @@ def test_a_taken_out_folder_or_a_missing_checkpoint_is_refused_before_anything_r
     assert (tmp_path / "robustness.md").read_text() == "mine"
     with pytest.raises(ConfigError, match="is not a file"):
         robustness([f"ckpt={tmp_path / 'absent.pt'}", f"out={tmp_path / 'new'}"])
+    # out= an existing file, or below one (was: every row evaluated, then a bare FileExistsError and no table)
+    (tmp_path / "notes.txt").write_text("mine")
+    for out in (tmp_path / "notes.txt", tmp_path / "notes.txt" / "table"):
+        for overwrite in ("false", "true"):
+            with pytest.raises(ConfigError, match=rf"out={out}: {tmp_path / 'notes.txt'} is a file, not a folder"):
+                robustness([f"ckpt={tmp_path / 'absent.pt'}", f"out={out}", f"overwrite={overwrite}"])
+    assert (tmp_path / "notes.txt").read_text() == "mine"
     with pytest.raises(ConfigError, match=r"fovs must be a non-empty list of degrees in \(0, 360\]"):
         robustness([f"ckpt={tmp_path / 'absent.pt'}", "fovs=[400]"])

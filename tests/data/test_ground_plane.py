@@ -5,11 +5,13 @@ import numpy as np
 import pytest
 from geoloc.config import ConfigError
 from geoloc.data.polar import street_to_ground, street_to_ground_grid
+from geoloc.launch import run
 from geoloc.synthetic.classes import ROAD, ROADLINES
 from geoloc.synthetic.config import resolve
 from geoloc.synthetic.samples import render_pair
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.datasets import read_split
+from helpers.crossview_runs import train_cfg
 
 
 def _band_pixel_of(east, north, height, band_hw):
@@ -62,8 +64,21 @@ def test_only_full_sphere_queries_take_it(tiny_cvusa):
     data, reader = parse_dataset({"name": "cvusa", "root": str(tiny_cvusa), "alignment": "ground"})
     with pytest.raises(ConfigError, match="full-sphere panorama .* use dataset.alignment=ipt"):
         read_split(data, reader, "train")
-    with pytest.raises(ConfigError, match="ground_extent_m > 0"):
+    with pytest.raises(ConfigError, match="ground_extent_m must be a finite number of metres > 0"):
         parse_dataset({"name": "vigor", "alignment": "ground", "ground_extent_m": 0})
+
+
+@pytest.mark.parametrize("key", ["ground_extent_m", "camera_height_m"])
+def test_a_ground_scale_that_is_not_a_finite_positive_number_is_refused_before_the_run_claims_its_folder(
+        key, tiny_cvusa, tmp_path):
+    """inf passed the parse: the run claimed its folder, died at its first item, and the corrected run was refused."""
+    for value in ("inf", "nan", "0", "-2.5"):
+        with pytest.raises(ConfigError, match=rf"dataset.{key} must be a finite number of metres > 0.*got {value}"):
+            parse_dataset({"name": "vigor", "alignment": "ground", key: float(value)})
+    run_dir = tmp_path / "run"
+    with pytest.raises(ConfigError, match=rf"dataset.{key} must be a finite number"):
+        run.train(train_cfg(tiny_cvusa, run_dir, "dataset.alignment=ground", f"dataset.{key}=inf"))
+    assert not run_dir.exists()
 
 
 def test_a_rendered_panorama_projects_its_road_onto_the_tile_road():

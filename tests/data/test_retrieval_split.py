@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from geoloc.data.geo import (
     EARTH_RADIUS_M,
+    centre_latlon,
     haversine_m,
     latlon_to_offset,
     offset_to_latlon,
@@ -37,6 +38,26 @@ def test_offsets_around_an_origin():
         latlon = offset_to_latlon(origin, east, north)
         assert haversine_m(origin, latlon) == pytest.approx(np.hypot(east, north), abs=1e-3)
         np.testing.assert_allclose(latlon_to_offset(origin, latlon), [east, north], atol=1e-9)
+
+
+def test_offsets_across_the_180_meridian_take_the_short_way_round():
+    """Brute force: each offset's length is the haversine distance, across the meridian too; two places on the
+    equator 0.0002° apart across it are 22.24 m apart, not nearly the Earth's circumference."""
+    rng = np.random.default_rng(0)
+    for origin in ((-16.5, 179.9999), (64.0, -179.9998), (0.0, 180.0), (10.0, 0.5)):
+        east_north = rng.uniform(-300, 300, (20, 2))
+        latlon = offset_to_latlon(origin, east_north[:, 0], east_north[:, 1])
+        assert (np.abs(latlon[:, 1]) <= 180.0).all()
+        np.testing.assert_allclose(haversine_m(origin, latlon), np.hypot(*east_north.T), rtol=1e-4)
+        np.testing.assert_allclose(latlon_to_offset(origin, latlon), east_north, atol=1e-6)
+        b = latlon[::-1]  # pairs of these points, either side of the meridian or not
+        np.testing.assert_allclose(np.linalg.norm(latlon_to_offset(latlon[0], b), axis=1), haversine_m(latlon[0], b),
+                                   rtol=2e-3)
+    a, b = (0.0, 179.9999), (0.0, -179.9999)
+    assert haversine_m(a, b) == pytest.approx(22.239, abs=1e-3)
+    np.testing.assert_allclose(latlon_to_offset(a, [b]), [[22.239, 0.0]], atol=1e-3)
+    np.testing.assert_allclose(latlon_to_offset(b, [a]), [[-22.239, 0.0]], atol=1e-3)
+    np.testing.assert_allclose(centre_latlon([a, b]), [0.0, 180.0], atol=1e-9)  # not 0°: the meridian between them
 
 
 def _split(**kw):

@@ -4,6 +4,7 @@ refusal names the file, the line and what to do."""
 
 from __future__ import annotations
 
+import os
 import re
 
 import numpy as np
@@ -61,6 +62,29 @@ def test_the_split_is_by_area_and_deterministic(own, axis):
                                                   test_fraction=0.4).queries == test.queries
 
 
+FIJI = (-16.5, 179.9995)  # 53 m west of the 180° meridian: a grid around it lies on both sides
+
+
+def test_a_folder_across_the_180_meridian_reads_as_the_same_folder_elsewhere(tmp_path):
+    """Tiles and queries either side of the meridian (a query 15 m from its tile was refused as outside it, and the
+    area split was drawn in a frame broken at the meridian): positives, tile positions, the split and its line are
+    those of the same layout around ORIGIN."""
+    tiles = TILES - [50.0, 0.0]  # east -50 to 100 m: the meridian lies 53 m east of FIJI
+    queries = tiles + [15.0, 0.0]
+    far, near = (write_folder(tmp_path / name, tiles, queries, aerial=20, pano=(8, 32), origin=origin)
+                 for name, origin in (("far", ORIGIN), ("near", FIJI)))
+    lons = np.loadtxt(near / "tiles.csv", delimiter=",", skiprows=1, usecols=2)
+    assert (lons > 179.99).any() and (lons < -179.99).any()  # both sides, each in [-180, 180]
+    for split in ("all", "train", "test"):
+        one, other = (folder(str(root), split, tile_extent_m=40.0, relevance="nearest_tile", test_fraction=0.5)
+                      for root in (far, near))
+        assert one.name == other.name and [p.name for p in one.references] == [p.name for p in other.references]
+        assert [p.name for p in one.queries] == [p.name for p in other.queries]
+        assert other.positives.tolist() == one.positives.tolist()
+        np.testing.assert_allclose(other.query_tile_px, one.query_tile_px, atol=1e-3)
+        np.testing.assert_allclose(other.query_tile_px[:, 1], 10 + 15.0 / 2, atol=1e-3)  # 15 m east, 2 m a pixel
+
+
 def vpr_name(east, north, zone=32, letter="U", k=0):
     lat, lon = offset_to_latlon(ORIGIN, east, north)
     return f"@{500000 + east:.2f}@{5400000 + north:.2f}@{zone}@{letter}@{lat:.5f}@{lon:.5f}@pano{k}@@@@@@@@.jpg"
@@ -83,6 +107,19 @@ def test_vpr_file_names_need_no_csv_and_one_utm_zone(own):
     odd.rename(own / "tiles" / "plain.jpg")
     with pytest.raises(ValueError, match=r"plain.jpg' is not a VPR name .*Write .*tiles.csv"):
         folder(str(own), "all", tile_extent_m=40.0)
+
+
+def test_a_file_name_that_is_not_utf8_is_refused_when_the_folder_is_read(own):
+    """A Latin-1 name passed the reader, then `gallery.save=` died after encoding with a bare UnicodeEncodeError."""
+    for side, positions in (("tiles", TILES), ("queries", QUERIES)):
+        name_as(own, side, [vpr_name(*p, k=i) for i, p in enumerate(positions)])
+    odd = sorted((own / "tiles").iterdir())[0]
+    raw = os.fsencode(odd.name).replace(b"pano0", b"caf\xe9")  # é in Latin-1: not UTF-8
+    os.rename(odd, os.path.join(os.fsencode(own / "tiles"), raw))
+    with pytest.raises(ValueError, match=re.escape(f"{own / 'tiles'}: the file name {raw!r} is not UTF-8")):
+        folder(str(own), "all", tile_extent_m=40.0)
+    (own / "tiles" / os.fsdecode(raw)).rename(own / "tiles" / vpr_name(*TILES[0], k=0).replace("pano0", "café"))
+    assert folder(str(own), "all", tile_extent_m=40.0).num_references == len(TILES)  # the same name in UTF-8 reads
 
 
 def name_as(own, side, names):

@@ -1,6 +1,7 @@
 """VIGOR: the reader on hand-written folders in the released format, the tile grid against brute force, and the
 synthetic vigor layout read back by the reader."""
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -9,6 +10,7 @@ import pytest
 from geoloc.data.geo import haversine_m
 from geoloc.datasets.vigor import CITIES, vigor_split
 from geoloc.synthetic import MARKER, generate
+from geoloc.synthetic.generate import write_marker
 from geoloc.synthetic.tiles import TileGrid
 
 # the real example line of docs/conventions.md "VIGOR split lines" (the panorama, its positive with offsets
@@ -210,6 +212,25 @@ def test_synthetic_cross_area_and_panorama_list(synthetic):
     assert cross.queries == same[0].queries + same[1].queries  # pano_label_balanced: train lines, then test
     with pytest.raises(FileNotFoundError, match="city 'Seattle'"):
         vigor_split(synthetic, "cross_area", "train")  # the tiny preset renders two cities only
+
+
+def test_a_synthetic_tree_without_its_complete_marker_is_refused_as_an_unfinished_render(synthetic, tmp_path):
+    """Without the marker, or with a render's incomplete one, the tree was read as a released VIGOR (640 px tiles,
+    the cities' real scale) and fine_mean_m moved from 64.4 to 50.4 without a word."""
+    marker = json.loads((synthetic / MARKER).read_text())
+    cut = shutil.copytree(synthetic, tmp_path / "cut")
+    (cut / MARKER).unlink()
+    with pytest.raises(ValueError, match=rf"{cut} is an unfinished geoloc synthetic render \(it holds "
+                                         rf"geoloc_offsets.json, .* but no complete {MARKER}\); render it again"):
+        vigor_split(cut, "same_area", "test", cities=["Chicago"])
+    write_marker(cut, {k: v for k, v in marker.items() if k != "complete"}, complete=False)  # killed part-way
+    with pytest.raises(ValueError, match=rf"unfinished geoloc synthetic render \(its {MARKER} says the render did"):
+        vigor_split(cut, "same_area", "test", cities=["Chicago"])
+    (cut / "geoloc_offsets.json").unlink()  # killed before the offsets were written: the marker alone tells
+    with pytest.raises(ValueError, match="unfinished geoloc synthetic render"):
+        vigor_split(cut, "same_area", "test", cities=["Chicago"])
+    released = shutil.copytree(synthetic, tmp_path / "released", ignore=shutil.ignore_patterns(MARKER, "geoloc_*"))
+    assert vigor_split(released, "same_area", "test", cities=["Chicago"]).reference_size_px[0, 0] == 640  # as VIGOR
 
 
 def test_older_layouts_keep_their_marker(tmp_path):

@@ -159,6 +159,37 @@ def test_the_best_epoch_follows_the_metric_and_mode_each_run_monitored(tmp_path)
                                 ).splitlines()[2] == "| (base) | 1 | 1.00 | 40.00 |"
 
 
+def _refining_run(root, monitor=("R@1", "max")):
+    """A run that logs recall, the refiner's fine_median_m (metres: lower is better) and a plug-in's score of no
+    stated direction at epochs 0, 1, 2."""
+    records = _epochs([(0, .10, .5), (1, .40, .8), (2, .20, .6)], monitor=monitor)
+    errors = iter([3.0, 9.0, 5.0])
+    for record in records:
+        if "val/R@1" in record:
+            record.update({"val/fine_median_m": next(errors), "val/plugin_score": 0.5})
+    _fake_run(root, "0", ["seed=0"], records)
+
+
+def test_a_monitor_from_the_command_line_is_picked_in_its_direction_and_the_title_says_which(tmp_path):
+    """--monitor fine_median_m picked the highest error as best, and --at both titled it "highest"."""
+    _refining_run(tmp_path / "a")
+    best = aggregate_sweep.main([str(tmp_path / "a"), "--monitor", "fine_median_m", "--metrics", "fine_median_m"])
+    table = best.split("### ")[2].splitlines()
+    assert table[0] == "best epoch (lowest fine_median_m of each run)"  # geoloc's metric: metres, lower is better
+    assert table[4] == "| (base) | 1 | 0.00 | 3.00 |"
+    assert aggregate_sweep.main([str(tmp_path / "a"), "--at", "best", "--monitor", "fine_median_m",
+                                 "--monitor-mode", "max", "--metrics", "fine_median_m"]
+                                ).splitlines()[2] == "| (base) | 1 | 1.00 | 9.00 |"  # as asked
+    _refining_run(tmp_path / "b", monitor=("fine_median_m", "min"))  # the run's own monitor and mode
+    assert aggregate_sweep.main([str(tmp_path / "b"), "--metrics", "fine_median_m"]).split("### ")[2].startswith(
+        "best epoch (lowest fine_median_m of each run)")
+    assert "best epoch (highest R@1 of each run)" in aggregate_sweep.main([str(tmp_path / "b"), "--monitor", "R@1"])
+    with pytest.raises(ValueError, match=r"--monitor plugin_score: whether higher or lower is better .*--monitor-mode"):
+        aggregate_sweep.main([str(tmp_path / "b"), "--at", "best", "--monitor", "plugin_score"])
+    with pytest.raises(SystemExit):
+        aggregate_sweep.main([str(tmp_path / "b"), "--monitor-mode", "min"])  # without --monitor
+
+
 def test_best_by_a_metric_the_runs_do_not_log_says_which_keys_they_have(tmp_path):
     _three_seeds(tmp_path)
     with pytest.raises(ValueError, match=r"no val/mAP.*'R@1', 'R@5'.*--monitor"):

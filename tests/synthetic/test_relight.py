@@ -1,6 +1,7 @@
 """relight_city: one city of a synthetic VIGOR world rendered again under another sun, the same places; the source
 untouched and the result readable by the VIGOR reader."""
 import json
+import sys
 
 import cv2
 import numpy as np
@@ -8,6 +9,8 @@ import pytest
 from geoloc.datasets.vigor import vigor_split
 from geoloc.synthetic import MARKER, generate
 from geoloc.synthetic.relight import relight_city
+
+from conftest import REPO
 
 
 @pytest.fixture(scope="module")
@@ -78,3 +81,22 @@ def test_bad_requests_are_refused(source, tmp_path):
     relit = relight_city(source, tmp_path / "d", "Chicago", sun_elevation=50.0, panoramas=False)
     with pytest.raises(ValueError, match="itself relit"):
         relight_city(relit, tmp_path / "e", "Chicago")
+
+
+@pytest.mark.parametrize("flag, value", [("--sun-azimuth", "nan"), ("--sun-azimuth", "inf"), ("--sun-azimuth", "-90"),
+                                         ("--sun-azimuth", "361"), ("--sun-elevation", "nan"),
+                                         ("--sun-elevation", "inf"), ("--season", "nan"), ("--season", "-inf")])
+def test_a_condition_that_is_not_a_finite_number_in_its_range_is_refused_before_anything(flag, value, tmp_path,
+                                                                                        monkeypatch):
+    """--sun-azimuth nan exited 0 with every tile black and NaN in the marker; the tool refuses it at the door,
+    before the source is read (it does not exist here) or anything is written."""
+    sys.path.insert(0, str(REPO / "tools"))
+    import relight_vigor
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["relight_vigor.py", str(tmp_path / "nowhere"), str(out), "--city", "Chicago",
+                                      f"{flag}={value}"])
+    name = flag.lstrip("-").replace("-", "_")
+    with pytest.raises(ValueError, match=rf"{name} must be a number in .*, got {float(value)}; nothing was written"):
+        relight_vigor.main()
+    assert not out.exists()

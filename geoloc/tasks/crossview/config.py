@@ -4,8 +4,9 @@
     run = parse_evaluation(cfg, stored)   # evaluate.py: the checkpoint's config, with the test condition asked for
 
 Every check that can fail on the config alone runs here, before any data is read, generated or decoded: the
-dataset's shared keys (CrossViewDataConfig) and its reader's own keys, the model section, the trainer section and
-the name and arguments of every registered component (backbone, head, loss, optimizer, sampler, query views).
+dataset's shared keys (CrossViewDataConfig) and its reader's own keys, the model section, the trainer section (its
+monitored metric among the keys validation can report: validation_keys.py) and the name and arguments of every
+registered component (backbone, head, loss, optimizer, sampler, query views).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
 from geoloc.tasks.crossview.gallery import GalleryConfig
 from geoloc.tasks.crossview.refine import RefineConfig, parse_refiner, refine_nodes
+from geoloc.tasks.crossview.validation_keys import check_monitor, validation_plan
 
 #: the registered kinds a cross-view network and its training are built from (registry.section: their sections)
 COMPONENTS = ("backbone", "head", "loss", "optimizer", "sampler", "query_views")
@@ -80,6 +82,18 @@ class CrossViewTraining:
     job: TrainKeys  # seed, ckpt, init_from, figures
     yaml: str = ""  # the resolved config, as checkpoints store it
 
+    @property
+    def monitor(self) -> str:
+        """The validation metric that selects best.pt: trainer.monitor, else the task's own (the trainer's rule)."""
+        from geoloc.tasks.crossview.task import CrossViewTask
+
+        return self.trainer.monitor or CrossViewTask.monitor
+
+    @property
+    def refine(self) -> RefineConfig | None:
+        """How the refiner trains and is tested; None for retrieval alone (no refiner section)."""
+        return self.components.refine if self.components.refiner else None
+
 
 @dataclass(frozen=True)
 class CrossViewEvaluation:
@@ -130,8 +144,10 @@ def parse_training(cfg: DictConfig) -> CrossViewTraining:
     trainer = checked(cfg.trainer, TrainerConfig, "trainer")
     model = checked(cfg.model, CrossViewModelConfig, "model")
     components = parse_components(cfg)
-    return CrossViewTraining(data=data, reader=reader, model=model, components=components, trainer=trainer,
-                             job=top_level(cfg, TrainKeys, "train.py"), yaml=to_yaml(cfg))
+    run = CrossViewTraining(data=data, reader=reader, model=model, components=components, trainer=trainer,
+                            job=top_level(cfg, TrainKeys, "train.py"), yaml=to_yaml(cfg))
+    check_monitor(run.monitor, validation_plan(data, run.refine), "under this config")
+    return run
 
 
 def parse_evaluation(cfg: DictConfig, stored: DictConfig) -> CrossViewEvaluation:

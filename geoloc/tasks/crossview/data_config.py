@@ -3,6 +3,7 @@ own keys (VIGOR's `setting`, the synthetic world's `preset`...) are checked agai
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields
 
 from omegaconf import DictConfig, OmegaConf
@@ -68,9 +69,11 @@ class CrossViewDataConfig:
         if self.resize_interpolation not in INTERPOLATIONS:
             raise ValueError(f"dataset.resize_interpolation must be one of {INTERPOLATIONS}, got "
                              f"{self.resize_interpolation!r}")
-        if self.alignment == "ground" and not (self.ground_extent_m > 0 and self.camera_height_m > 0):
-            raise ValueError(f"dataset.alignment=ground needs dataset.ground_extent_m > 0 and dataset.camera_height_m > "
-                             f"0, got {self.ground_extent_m} and {self.camera_height_m}")
+        for key in ("ground_extent_m", "camera_height_m"):  # at the parse, not at the first item of a run
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"dataset.{key} must be a finite number of metres > 0 (the ground projection of "
+                                 f"dataset.alignment=ground), got {value}")
         if self.batch_size < 1:
             raise ValueError(f"dataset.batch_size must be >= 1, got {self.batch_size}")
         if self.aerial_size < 16 or len(self.pano_size) != 2 or min(self.pano_size) < 8:

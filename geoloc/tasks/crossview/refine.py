@@ -201,16 +201,17 @@ def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refi
 
 
 # ---- metrics ------------------------------------------------------------------------------------------------
-def fine_plan(split: RetrievalSplit, refine: RefineConfig) -> list:
+def fine_plan(split: RetrievalSplit | None, refine: RefineConfig) -> list:
     """The key sets refinement reports on `split`: metres where the tiles' scale is known (over the whole tile where
     the split gives semi-positives), the heading when it is unknown, end to end where the split has positions and
-    is not one-to-one."""
-    plan = [FINE_KEYS] if split.reference_metres_per_px is not None else []
-    if plan and split.semi_positives is not None and split.query_semi_tile_px is not None:
+    is not one-to-one. split=None: every key set some split could give (what the config alone says)."""
+    scaled = split is None or split.reference_metres_per_px is not None
+    plan = [FINE_KEYS] if scaled else []
+    if plan and (split is None or split.semi_positives is not None and split.query_semi_tile_px is not None):
         plan.append(WHOLE_TILE_KEYS)
     if refine.orientation_noise_deg > 0:
         plan.append(FINE_HEADING_KEYS)
-    if split.positions()[0] is not None and split.reference_metres_per_px is not None and not split.one_to_one:
+    if scaled and (split is None or split.positions()[0] is not None and not split.one_to_one):
         plan.append(E2E_KEYS)
     return plan
 

@@ -20,6 +20,7 @@ from geoloc.tasks.crossview.gallery_folder import check_target
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state, with_refiner_overlap
 from geoloc.tasks.crossview.refine import METRE_LABELS
 from geoloc.tasks.crossview.task import CrossViewTask
+from geoloc.tasks.crossview.validation_keys import check_monitor, validation_plan
 
 # what an init_from= run does not take from its source: the loss's state (the GMS queue holds the source data's
 # places and descriptors; a learned temperature starts again) and the refiner (a refinement stage starts it afresh
@@ -49,6 +50,7 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
     train_set = build(run.data, run.reader, "train", train=True, augment_seed=run.trainer.seed,
                       views=run.components.views, refine=refine)
     val_set = build_eval(run.data, run.reader, run.data.val_split, refine=refine)
+    check_monitor(run.monitor, validation_plan(run.data, run.refine, val_set.split), f"on {val_set.split.name}")
     task.validate_on(val_set.split)
     trainer = Trainer(run.trainer, run_dir, run.yaml)
     if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir

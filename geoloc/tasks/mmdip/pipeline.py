@@ -56,6 +56,12 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
     check_image_size(task_cfg, data_cfg)  # phase 2's shapes too: found there, they would cost all of phase 1
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
+    if trainer_cfg.monitor is not None or trainer_cfg.monitor_mode != "max":
+        # one trainer section drives both phases, whose validations report different keys
+        raise ConfigError(f"task=mmdip selects each phase's best.pt by its own metric, the higher the better (phase 1: "
+                          f"{SegmentationTask.monitor}, phase 2: {JointTask.monitor}); trainer.monitor="
+                          f"{trainer_cfg.monitor} and trainer.monitor_mode={trainer_cfg.monitor_mode} would apply to "
+                          "both phases: leave them unset")
     if cfg.get("ckpt") or cfg.get("init_from"):
         raise ConfigError("task=mmdip runs both phases from scratch: resuming with ckpt= or starting from weights "
                           "with init_from= is not supported. Start the run again in a new run dir (leave "

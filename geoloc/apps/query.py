@@ -141,6 +141,10 @@ def check_size(name: str, width: int, height: int, fov: float, canvas: tuple[int
     """QueryError (413) naming the limit when the W×H image `name`, or the (rows, columns) canvas a view of `fov`
     degrees is placed on, is over `limits`; columns may be inf (a vanishing fov)."""
     rows, columns = canvas
+    if rows < 1:  # a full sphere keeps rows H/4 to 3H/4: none of a 1-row image
+        raise QueryError("image", f"{name} is {width}x{height}: the street view cut from it has no rows (a full-sphere "
+                                  "panorama, as this gallery's queries are, keeps its horizon band, rows H/4 to "
+                                  "3H/4): give the whole panorama, at least 2 rows high")
     if width * height > limits.max_pixels:
         raise QueryError("max_pixels", f"{name} is {width}x{height} = {width * height:,} pixels, over the "
                                        f"limit of {limits.max_pixels:,} (max_pixels): downscale it (the network sees "

@@ -288,3 +288,29 @@ def test_a_bad_device_names_the_valid_ones_before_the_checkpoint_is_read(capsys)
     assert "geoloc serve: device='banana' is not a device: use one of auto, cpu" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="bad 'serve' config: max_topk must be >= 1"):
         cli.parse_keys(["ckpt=a", "gallery=g", "max_topk=0"], ServeConfig, "serve")
+
+
+def test_a_panorama_with_no_horizon_rows_is_refused_naming_the_file(gallery, tmp_path, monkeypatch):  # noqa: F811
+    """A 1-row image against a full-sphere gallery (VIGOR's queries): its horizon band, rows H/4 to 3H/4, is empty.
+    The service answers 422 naming the upload; localize.py refuses a folder holding one before it answers any
+    image, naming the file."""
+    from geoloc.apps.localize.run import localize
+
+    _, ckpt, folder = gallery
+    loaded = Localizer.load(ckpt, folder, device="cpu")
+    sphere = Localizer(loaded.encoder, loaded.index, loaded.places, {**loaded.meta, "query_view": "sphere"})
+    client = TestClient(create_app(sphere))
+    answer = post(client, png(np.zeros((1, 64, 3), np.uint8)), name="strip.png", heading="0")
+    assert answer.status_code == 422, answer.text
+    assert answer.json()["key"] == "image" and answer.json()["detail"].startswith(
+        "the upload 'strip.png' is 64x1: the street view cut from it has no rows")
+    assert post(client, png(np.zeros((2, 64, 3), np.uint8)), heading="0").status_code == 200  # one row of band
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for name, rows in (("a.png", 16), ("b.png", 1), ("c.png", 16)):
+        (images / name).write_bytes(png(np.zeros((rows, 64, 3), np.uint8)))
+    monkeypatch.setattr(Localizer, "load", lambda *args, **kwargs: sphere)
+    with pytest.raises(QueryError, match=rf"^{images / 'b.png'} is 64x1: the street view cut from it has no rows"):
+        localize(compose_localize(ckpt, folder, images, tmp_path / "out", "heading=0"))
+    assert not (tmp_path / "out" / "localize.jsonl").exists()  # refused before the first answer, a.png's too

@@ -113,6 +113,14 @@ class Localizer:
               heading_prior=None, abstain=None) -> QuerySettings:
         """A query's settings as given (numbers or text; None: the default) and its image's size, checked before
         anything is decoded: the settings, or QueryError naming the setting or the limit (query.py)."""
+        settings = self.settings(fov, topk, heading, heading_prior, abstain)
+        check_size(name, width, height, settings.fov, self.encoder.canvas_shape(height, width, settings.fov, self.view),
+                   self.limits)
+        return settings
+
+    def settings(self, fov=None, topk=None, heading=None, heading_prior=None, abstain=None) -> QuerySettings:
+        """A query's settings as given, checked against this gallery (abstain needs its confidence) without an
+        image: the settings, or QueryError naming the setting."""
         settings = check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
         if settings.abstain is not None and not self.calibrated_for(settings):
             info = self.calibration_info()
@@ -121,8 +129,6 @@ class Localizer:
             raise QueryError("abstain", f"abstain={settings.abstain:g} needs the answer's confidence, and {held}: "
                                         "give the image's heading (without heading_prior) at that fov, or leave "
                                         "abstain out")
-        check_size(name, width, height, settings.fov, self.encoder.canvas_shape(height, width, settings.fov, self.view),
-                   self.limits)
         return settings
 
     @torch.no_grad()
@@ -277,13 +283,20 @@ def _tile(root: Path, path: str) -> np.ndarray | None:
         return None
 
 
-def read_street(path: Path, check=None) -> np.ndarray:
-    """An image file as H×W×3 uint8 RGB (a clear error for a missing, truncated or non-image file). check(width,
-    height), e.g. a Localizer's limits, runs on the file's header first, before any pixel is decoded."""
+def check_street(path: Path, check=None) -> bytes:
+    """An image file's bytes, after check(width, height), e.g. a Localizer's `check`, has run on its header: a
+    missing file, a non-image or an image the query cannot take is refused, naming the file, before any pixel is
+    decoded."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
     data = path.read_bytes()
     if check is not None:
         check(*image_size(data, str(path))[:2])
-    return decode_rgb(data, path)
+    return data
+
+
+def read_street(path: Path, check=None) -> np.ndarray:
+    """An image file as H×W×3 uint8 RGB (a clear error for a missing, truncated or non-image file), checked first
+    as check_street checks it."""
+    return decode_rgb(check_street(path, check), Path(path))

@@ -5,7 +5,9 @@ The outputs never touch the inputs or another run: `out=` may not be a folder th
 `<name>.png` would replace an input, and be read as one by the next run on that folder); each image's figure is
 named after its whole file name (`a.jpg.png`, `a.png.png`), so two images never share one; and the run holds the
 lock of its `out=` folder (geoloc/launch/rundir.py) while it writes, so a second localize.py, or a training, cannot
-write there at the same time.
+write there at the same time. Every image's header is checked (its size against the limits and the gallery's query
+view) before the first is answered, so a folder holding an image the query cannot take is refused, naming that
+file, before any work.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 
 from omegaconf import MISSING, DictConfig
 
-from geoloc.apps.localize.localizer import Localizer, read_street
+from geoloc.apps.localize.localizer import Localizer, check_street, read_street
 from geoloc.apps.query import QueryError, QueryLimits, QuerySettings, check_settings
 from geoloc.config import ConfigError, checked
 from geoloc.launch.rundir import claimed
@@ -84,13 +86,17 @@ def localize(section: DictConfig) -> list[dict]:
         query = {"fov": cfg.fov, "topk": cfg.topk, "heading": cfg.heading, "heading_prior": cfg.heading_prior,
                  "abstain": cfg.abstain}
         try:  # abstain needs a calibrated gallery: refused before any image is read
-            localizer.check(1, 1, **query)
+            localizer.settings(**query)
         except QueryError as err:
             raise ConfigError(f"localize.py: {err}") from None
+        def check(path: Path):  # the query's check of an image's size, naming its file
+            return lambda width, height: localizer.check(width, height, name=str(path), **query)
+
+        for path in images:  # every header before the first answer: an image the query cannot take stops no run midway
+            check_street(path, check(path))
         with open(out / "localize.jsonl", "a") as lines:
             for path in images:
-                image = read_street(path, lambda width, height, name=str(path): localizer.check(
-                    width, height, name=name, **query))
+                image = read_street(path, check(path))
                 result = localizer.localize(image, path=path, **query)
                 if cfg.picture:
                     from geoloc.apps.localize.picture import localization_figure

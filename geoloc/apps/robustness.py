@@ -27,7 +27,9 @@ USAGE = """usage: geoloc robustness ckpt=PATH [out=DIR] [overwrite=false] [fovs=
   heading_steps     candidate headings of the unknown-heading search (12: every 30 degrees; evaluate.py's
                     default is 36)
   distractors       the rows again with the gallery padded by this many tiles of other places: the first tiles
-                    of the same dataset's distractor_split (0: no padded rows)
+                    of the same dataset's distractor_split that are not in the evaluated gallery (0: no padded
+                    rows; none such, as in VIGOR same-area, whose splits share their tiles: none, and the table
+                    says why)
   cross             evaluate.py overrides of a cross-dataset row (FoV 360, heading known), e.g.
                     cross="dataset=cvact dataset.root=/data/CVACT"; several rows separated by ';'; cross=none: none
   dataset*          evaluate.py's overrides of the data the main rows score (default: the checkpoint's own)
@@ -137,11 +139,11 @@ def robustness(args: list[str]) -> dict:
     plan = Plan(fovs=list(cfg.fovs), heading_steps=cfg.heading_steps, distractors=cfg.distractors,
                 distractor_split=cfg.distractor_split, dataset=dataset, cross=cross)
     start = time.perf_counter()
-    rows = evaluate_conditions(cfg.ckpt, plan, lambda overrides: evaluate_config(
+    rows, notes = evaluate_conditions(cfg.ckpt, plan, lambda overrides: evaluate_config(
         cfg.ckpt, overrides, cfg.device, cfg.num_workers, cfg.progress))
     seconds = time.perf_counter() - start
     out.mkdir(parents=True, exist_ok=True)
-    table, record = markdown(rows, plan, cfg.ckpt, seconds), as_json(rows, plan, cfg.ckpt, seconds)
+    table, record = markdown(rows, plan, cfg.ckpt, seconds, notes), as_json(rows, plan, cfg.ckpt, seconds, notes)
     write_whole(out / TABLE_JSON, json.dumps(record, indent=2) + "\n", cfg.overwrite)
     write_whole(out / TABLE_MD, table, cfg.overwrite)
     print(f"\n{table}\nwritten: {out / TABLE_MD}  {out / TABLE_JSON}")

@@ -27,6 +27,24 @@ def padded_test(root: str, split: str) -> RetrievalSplit:
                           np.arange(own.num_queries))
 
 
+@register("dataset", "robustness_same_area")
+def same_area(root: str, split: str) -> RetrievalSplit:
+    """CVUSA's `split` whose gallery is every tile of train and val, as each split of VIGOR same-area holds every
+    tile of the four cities."""
+    own, other = cvusa(root, split), cvusa(root, "val" if split == "train" else "train")
+    return RetrievalSplit("same_area", root, own.queries, own.references + other.references,
+                          np.arange(own.num_queries))
+
+
+@register("dataset", "robustness_overlap")
+def overlap(root: str, split: str) -> RetrievalSplit:
+    """CVUSA, whose train gallery also holds the first 3 val tiles."""
+    own, val = cvusa(root, split), cvusa(root, "val")
+    shared = val.references[:3] if split == "train" else []
+    return RetrievalSplit("overlap", root, own.queries, shared + own.references,
+                          np.arange(own.num_queries) + len(shared))
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     base = tmp_path_factory.mktemp("robustness")
@@ -91,3 +109,33 @@ def test_a_taken_out_folder_or_a_missing_checkpoint_is_refused_before_anything_r
     assert (tmp_path / "notes.txt").read_text() == "mine"
     with pytest.raises(ConfigError, match=r"fovs must be a non-empty list of degrees in \(0, 360\]"):
         robustness([f"ckpt={tmp_path / 'absent.pt'}", "fovs=[400]"])
+
+
+def test_distractors_are_tiles_outside_the_evaluated_gallery_checked_before_any_row(trained, monkeypatch):
+    """The default distractor_split=train on a dataset whose splits share their tiles (VIGOR same-area): the shared
+    tiles are no distractors, and where none is left the padded rows are left out with a note; a distractor split
+    that cannot pad is refused before the first row is scored."""
+    from geoloc.tasks.crossview import robustness as conditions
+
+    base, root, _, ckpt = trained
+    scored = []
+    score = conditions.score
+    monkeypatch.setattr(conditions, "score", lambda *args: scored.append(1) or score(*args))
+    common = [f"ckpt={ckpt}", f"dataset.root={root}", "fovs=[360]", "heading_steps=4", "distractors=5",
+              "cross=none", "device=cpu"]
+    with pytest.raises(ConfigError, match="distractor_split=val is the evaluated split itself"):
+        robustness([*common, "+dataset.name=robustness_overlap", "distractor_split=val", f"out={base / 'refused'}"])
+    assert scored == [] and not (base / "refused").exists()
+
+    record = robustness([*common, "+dataset.name=robustness_same_area", f"out={base / 'same_area'}"])
+    assert [(r["fov"], r["heading"], r["distractors"]) for r in record["rows"]] == [(360, "known", 0),
+                                                                                    (360, "unknown", 0)]
+    note = ("No padded rows: every tile of distractor_split=train (20) is in the evaluated gallery of same_area, so "
+            "none shows another place")
+    assert record["notes"][0].startswith(note) and note in (base / "same_area" / "robustness.md").read_text()
+
+    record = robustness([*common, "+dataset.name=robustness_overlap", f"out={base / 'overlap'}"])
+    padded = [r for r in record["rows"] if r["distractors"]]
+    assert len(padded) == 2 and all(r["distractors"] == 5 and r["metrics"]["num_references"] == 13 for r in padded)
+    assert record["notes"] == ["The 3 tiles of distractor_split=train that are in the evaluated gallery of overlap "
+                               "are not distractors: the padding is drawn from its 12 others."]

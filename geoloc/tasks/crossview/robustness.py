@@ -5,8 +5,10 @@ config.parse_evaluation, then run.score; nothing here ranks or scores.
 
 Conditions, in table order:
 - for the gallery as it is, then padded with `distractors` tiles (University-160k style: references of other
-  places, relevant to no query), each FoV in `fovs`, the heading known (the view at north) and unknown (searched
-  over `heading_steps` candidate headings, 360·k/K, docs/heading.md);
+  places, relevant to no query; tiles of the distractor split that the evaluated gallery holds are left out, and
+  where that leaves none, as in VIGOR same-area, so are the padded rows, with a note saying why), each FoV in
+  `fovs`, the heading known (the view at north) and unknown (searched over `heading_steps` candidate headings,
+  360·k/K, docs/heading.md);
 - a cross-dataset row per `cross` entry (evaluate.py overrides, e.g. ["dataset=vigor"]): that dataset's evaluation
   split at FoV 360, heading known.
 """
@@ -45,7 +47,8 @@ class Condition:
 class Plan:
     """What `robustness` evaluates: see the module docstring. `dataset`: evaluate.py's overrides naming the data of
     the main rows (empty: the checkpoint's own dataset and split); `distractor_split`: the split of the same dataset
-    whose references pad the gallery (the first `distractors` of them, in the reader's order)."""
+    whose references pad the gallery (the first `distractors` of those not in the evaluated gallery, in the reader's
+    order)."""
 
     fovs: list[float] = field(default_factory=lambda: [360.0, 180.0, 90.0, 70.0])
     heading_steps: int = 12
@@ -70,47 +73,61 @@ def test_condition(fov: float, unknown_heading: bool, heading_steps: int) -> tup
             f"dataset.heading_steps={heading_steps}")
 
 
-def evaluate_conditions(ckpt: str, plan: Plan, compose, on_row=None) -> list[dict]:
-    """[{"condition": Condition, "split": name, "distractors": tiles added, "metrics": evaluate.py's metrics}] for
-    each of plan.conditions() (fewer distractors than asked where the source split has fewer tiles); the network is
-    built once from `ckpt`. compose(overrides) gives evaluate.py's config of a condition (the app composes it with
-    Hydra); on_row(row) is called as each row is done."""
+def evaluate_conditions(ckpt: str, plan: Plan, compose, on_row=None) -> tuple[list[dict], list[str]]:
+    """([{"condition": Condition, "split": name, "distractors": tiles added, "metrics": evaluate.py's metrics}] for
+    each of plan.conditions(), notes on the padding for the table). The network is built once from `ckpt`.
+    compose(overrides) gives evaluate.py's config of a condition (the app composes it with Hydra); on_row(row) is
+    called as each row is done. Every condition's config and the padded gallery are checked before the first row is
+    evaluated; where no tile of plan.distractor_split lies outside the evaluated gallery, the padded rows are left
+    out and a note says why."""
     state = ckpt_io.load(ckpt)
     stored = stored_config(state)
     conditions = plan.conditions()
-    runs = [parse_evaluation(compose(c.overrides), stored)
-            for c in conditions]  # every condition's config checked before anything is evaluated
+    runs = [parse_evaluation(compose(c.overrides), stored) for c in conditions]
+    notes, gallery, distractors = [], None, []
+    first = next((run for c, run in zip(conditions, runs) if c.distractors), None)
+    if first is not None:  # every padded row shares the main rows' data: one padded gallery for all
+        split = read_split(first.data, first.reader, first.data.split)
+        distractors, note = distractor_tiles(first, split, plan.distractor_split, plan.distractors)
+        notes += [note] if note else []
+        if distractors:
+            gallery = padded(split, distractors)
+        else:
+            conditions, runs = zip(*[(c, run) for c, run in zip(conditions, runs) if not c.distractors])
     task = restored_task(state, ckpt, stored)
-    rows, distractor_paths = [], {}
+    rows = []
     for condition, run in zip(conditions, runs):
-        eval_data = None
-        if condition.distractors:
-            split = read_split(run.data, run.reader, run.data.split)
-            if condition.distractors not in distractor_paths:
-                distractor_paths[condition.distractors] = distractor_tiles(run, split, plan.distractor_split,
-                                                                           condition.distractors)
-            eval_data = eval_sets(run.data, padded(split, distractor_paths[condition.distractors]))
+        eval_data = eval_sets(run.data, gallery) if condition.distractors else None
         metrics = score(run, task, eval_data)
         row = {"condition": condition, "split": eval_data.split.name if eval_data else _split_name(run),
-               "distractors": len(distractor_paths.get(condition.distractors, ())), "metrics": metrics}
+               "distractors": len(distractors) if condition.distractors else 0, "metrics": metrics}
         rows.append(row)
         if on_row is not None:
             on_row(row)
-    return rows
+    return rows, notes
 
 
-def distractor_tiles(run, split, distractor_split: str, count: int) -> list[Path]:
-    """The first `count` references of `distractor_split` of the evaluated dataset: other places, none of them in
-    `split`'s gallery."""
+def distractor_tiles(run, split, distractor_split: str, count: int) -> tuple[list[Path], str | None]:
+    """(the first `count` references of `distractor_split` of the evaluated dataset that are not in `split`'s
+    gallery: other places; a note on the tiles left out, None when none were). A dataset whose splits share their
+    tiles (VIGOR same-area: every split's gallery is every tile of the four cities) gives fewer, or none."""
     if distractor_split == run.data.split:
         raise ConfigError(f"distractor_split={distractor_split} is the evaluated split itself: its tiles are the "
                           "queries' own places; pad with another split (train)")
     source = read_split(run.data, run.reader, distractor_split)
-    shared = set(source.references) & set(split.references)
-    if shared:
-        raise ConfigError(f"distractor_split={distractor_split} shares {len(shared)} tiles with the evaluated split "
-                          f"{split.name} (e.g. {sorted(shared)[0]}): a distractor must show another place")
-    return source.references[:count]
+    gallery = set(split.references)
+    others = [path for path in source.references if path not in gallery]
+    shared = len(source.references) - len(others)
+    if not shared:
+        return others[:count], None
+    if not others:
+        return [], (f"No padded rows: every tile of distractor_split={distractor_split} ({shared}) is in the "
+                    f"evaluated gallery of {split.name}, so none shows another place (VIGOR same-area splits share "
+                    "the four cities' tiles). To pad, evaluate a split whose gallery leaves tiles out "
+                    "(dataset.setting=cross_area) or name another distractor_split.")
+    return others[:count], (f"The {shared} tiles of distractor_split={distractor_split} that are in the evaluated "
+                            f"gallery of {split.name} are not distractors: the padding is drawn from its "
+                            f"{len(others)} others.")
 
 
 def _split_name(run) -> str:
@@ -124,8 +141,8 @@ def cell(metrics: dict, key: str) -> str:
     return f"{value:.1f}" if key == HEADING_KEY else f"{100 * value:.2f}"
 
 
-def markdown(rows: list[dict], plan: Plan, ckpt: str, seconds: float) -> str:
-    """The table: recall in %, the median heading error in degrees (unknown heading only)."""
+def markdown(rows: list[dict], plan: Plan, ckpt: str, seconds: float, notes: list[str] = ()) -> str:
+    """The table: recall in %, the median heading error in degrees (unknown heading only); then the notes."""
     lines = [f"Robustness of `{ckpt}` ({seconds:.0f} s). Recall in %; unknown heading: searched over "
              f"{plan.heading_steps} candidate headings (every {360 / plan.heading_steps:g}°), each query at a "
              "fixed pseudo-random true heading (`views.eval_heading`); the heading error is the median over queries "
@@ -139,12 +156,13 @@ def markdown(rows: list[dict], plan: Plan, ckpt: str, seconds: float) -> str:
         split = row["split"].split(" + ")[0] + (" (cross-dataset)" if c.cross else "")
         lines.append(f"| {split} | {gallery} | {c.fov:g} | {c.heading} | "
                      + " | ".join(cell(m, k) for k in KEYS) + f" | {cell(m, HEADING_KEY)} |")
+    lines += [f"\n{note}" for note in notes]
     return "\n".join(lines) + "\n"
 
 
-def as_json(rows: list[dict], plan: Plan, ckpt: str, seconds: float) -> dict:
+def as_json(rows: list[dict], plan: Plan, ckpt: str, seconds: float, notes: list[str] = ()) -> dict:
     return {"ckpt": str(ckpt), "seconds": round(seconds, 1), "heading_steps": plan.heading_steps,
-            "distractor_split": plan.distractor_split,
+            "distractor_split": plan.distractor_split, "notes": list(notes),
             "rows": [{"split": r["split"], "fov": r["condition"].fov, "heading": r["condition"].heading,
                       "distractors": r["distractors"], "cross_dataset": r["condition"].cross,
                       "overrides": list(r["condition"].overrides), "metrics": r["metrics"]} for r in rows]}

@@ -69,3 +69,38 @@ def test_no_response_carries_cors_headers(tiled):
     assert answers[3].status_code == 200
     for answer in answers:
         assert not [h for h in answer.headers if h.lower().startswith("access-control-")], answer.request.url
+
+
+class BrokenLocalizer(TiledLocalizer):
+    def info(self):
+        raise RuntimeError("a bug past every handler")
+
+
+def test_api_docs_are_off_unless_asked_and_every_response_has_a_policy_and_frame_protection(tmp_path):
+    """/docs and /redoc load FastAPI's scripts from a CDN: off by default. Every response, errors and Starlette's
+    own 500 included, forbids framing and carries a Content-Security-Policy; the page keeps its own."""
+    (tmp_path / "a.png").write_bytes(b"\x89PNG fake tile a")
+    client = TestClient(create_app(BrokenLocalizer(tmp_path)), raise_server_exceptions=False)
+    assert client.get("/docs").status_code == 404 and client.get("/redoc").status_code == 404
+    answers = {"page": client.get("/"), "script": client.get("/page.js"), "tile": client.get("/tiles/0"),
+               "localize": client.post("/localize", **GOOD), "openapi": client.get("/openapi.json"),
+               "bad request": client.post("/localize", files={"image": ("a.txt", b"text")}),
+               "no such row": client.get("/tiles/9"), "no such path": client.get("/nowhere"),
+               "500": client.get("/health")}
+    assert [answers[k].status_code for k in ("localize", "openapi", "bad request", "no such row", "500")] == [
+        200, 200, 415, 404, 500]
+    for name, answer in answers.items():
+        policy = answer.headers["content-security-policy"]
+        assert "frame-ancestors 'none'" in policy and "default-src 'none'" in policy, name
+        assert answer.headers["x-frame-options"] == "DENY" and answer.headers["x-content-type-options"] == "nosniff"
+        if name not in ("page", "script"):
+            assert "script-src" not in policy, name  # nothing runs in an answer, a tile or an error
+    assert answers["page"].headers["content-security-policy"].startswith("default-src 'none'; script-src 'self'; "
+                                                                         "connect-src 'self'")
+    docs = TestClient(create_app(TiledLocalizer(tmp_path), api_docs=True))
+    for path in ("/docs", "/redoc"):
+        page = docs.get(path)
+        assert page.status_code == 200 and "cdn.jsdelivr.net" in page.text
+        assert "script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net" in page.headers["content-security-policy"]
+        assert page.headers["x-frame-options"] == "DENY"
+    assert "script-src" not in docs.get("/health").headers["content-security-policy"]

@@ -332,6 +332,9 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
     answer = TestClient(app).post("/localize", **GOOD)  # max_pixels=100 reached the app: 80x40 is over it
     assert answer.status_code == 413
     assert "80x40 = 3,200 pixels, over the limit of 100 (max_pixels)" in answer.json()["detail"]
+    assert TestClient(app).get("/docs").status_code == 404  # FastAPI's CDN pages: only with api_docs=true
+    assert cli.main(["serve", "ckpt=run/best.pt", "gallery=run/gallery", "api_docs=true"]) == 0
+    assert TestClient(runs[-1][0]).get("/docs").status_code == 200
 
 
 @pytest.mark.parametrize("argv,code,message", [

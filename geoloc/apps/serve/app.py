@@ -10,7 +10,9 @@ POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360
 `topk` (1 to max_topk, default 5), `heading` (degrees clockwise from north when known; default: searched),
 `heading_prior` (± degrees around heading to search) and `abstain` (a confidence threshold in [0, 1]) as form
 fields or query parameters, each given once -> localizer.localize(...)'s answer, as JSON.
-No response carries CORS headers: a page of another origin cannot read the answers.
+No response carries CORS headers: a page of another origin cannot read the answers. Every response carries a
+Content-Security-Policy and frame protection (headers.py). FastAPI's /docs and /redoc, which load scripts from a
+CDN, are off unless `api_docs`; /openapi.json describes the API.
 
 `localizer` is anything with `check(width, height, fov=, topk=, heading=, heading_prior=, abstain=, name=)` (the
 settings as sent, checked with the image's size before it is decoded: a QuerySettings, or QueryError naming the
@@ -37,6 +39,7 @@ from fastapi.responses import JSONResponse, Response
 
 from geoloc.apps.query import ABSTAIN, FOV, HEADING, HEADING_PRIOR, TOPK, QueryError
 from geoloc.apps.serve.body_limit import BodyLimit
+from geoloc.apps.serve.headers import DOCS_POLICY, SecurityHeaders
 from geoloc.apps.serve.page import add_page
 from geoloc.apps.serve.upload import SEND, decode_upload
 
@@ -49,9 +52,24 @@ HINTS = {"image": SEND, "fov": FOV, "topk": TOPK, "heading": HEADING, "heading_p
 SETTINGS = ("fov", "topk", "heading", "heading_prior", "abstain")
 
 
-def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_SECONDS) -> FastAPI:
-    """A FastAPI app answering /health and /localize from `localizer` (module docstring)."""
-    app = FastAPI(title="geoloc", summary="Where was this street image taken? Retrieval against a saved gallery.")
+class Service(FastAPI):
+    """FastAPI with SecurityHeaders outermost, outside Starlette's error middleware, so that its 500s get them too."""
+
+    def __init__(self, policies: dict[str, str], **kwargs):
+        self.policies = policies  # SecurityHeaders' policies by path
+        super().__init__(**kwargs)
+
+    def build_middleware_stack(self):
+        return SecurityHeaders(super().build_middleware_stack(), self.policies)
+
+
+def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_SECONDS,
+               api_docs: bool = False) -> FastAPI:
+    """A FastAPI app answering /health and /localize from `localizer` (module docstring); api_docs: serve FastAPI's
+    /docs and /redoc (their scripts come from cdn.jsdelivr.net)."""
+    docs = {"docs_url": "/docs", "redoc_url": "/redoc"} if api_docs else {"docs_url": None, "redoc_url": None}
+    app = Service({path: DOCS_POLICY for path in docs.values() if path}, title="geoloc",
+                  summary="Where was this street image taken? Retrieval against a saved gallery.", **docs)
     app.add_middleware(BodyLimit, max_bytes=max_bytes)
     app.add_exception_handler(RequestValidationError, readable_validation_error)
     app.add_exception_handler(QueryError, query_error)

@@ -14,7 +14,7 @@ LIMITS = QueryLimits()
 USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=auto]
                     [heading_steps=K] [max_bytes={MAX_BYTES}] [max_seconds={MAX_SECONDS:g}]
                     [max_pixels={LIMITS.max_pixels}] [max_canvas_side={LIMITS.max_canvas_side}]
-                    [max_headings={LIMITS.max_headings}] [max_topk={LIMITS.max_topk}]
+                    [max_headings={LIMITS.max_headings}] [max_topk={LIMITS.max_topk}] [api_docs=false]
 
   ckpt        a checkpoint written by train.py (best.pt)
   gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
@@ -29,6 +29,8 @@ USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=800
               a view of fov degrees is placed on (W·360/fov columns), the canvas's columns and rows, the
               candidate headings (heading_steps) and topk. An image over a limit gets 413 naming it, read from its
               header before it is decoded; heading_steps over max_headings is refused at start
+  api_docs    serve FastAPI's /docs and /redoc pages, which load their scripts from cdn.jsdelivr.net (off: the
+              API is described by /openapi.json)
 
 POST /localize (multipart field image; fov, topk, heading, heading_prior, abstain), GET /health, GET / (the page:
 open http://HOST:PORT/ in a browser) and GET /tiles/{{row}}; see README "Query service"."""
@@ -46,6 +48,7 @@ class ServeConfig(QueryLimits):
     heading_steps: int | None = None  # None: the checkpoint's dataset.heading_steps
     max_bytes: int = MAX_BYTES
     max_seconds: float = MAX_SECONDS
+    api_docs: bool = False  # FastAPI's /docs and /redoc, whose scripts come from a CDN
 
     def __post_init__(self):
         super().__post_init__()
@@ -73,6 +76,6 @@ def main(args: list[str]) -> int:
     except (FileNotFoundError, ValueError) as err:  # its message names the file or the key, and what to do
         print(f"geoloc serve: {err}", file=sys.stderr)
         return 2
-    app = create_app(localizer, max_bytes=cfg.max_bytes, max_seconds=cfg.max_seconds)
+    app = create_app(localizer, max_bytes=cfg.max_bytes, max_seconds=cfg.max_seconds, api_docs=cfg.api_docs)
     uvicorn.run(app, host=cfg.host, port=cfg.port)  # one worker process: a second would load a second model
     return 0

@@ -15,10 +15,10 @@ from fastapi.responses import FileResponse, Response
 from geoloc.apps.query import QueryError
 
 STATIC = Path(__file__).with_name("static")
+# the rest of the security headers, and the policy of every other response, come from headers.py
 PAGE_HEADERS = {"Content-Security-Policy": "default-src 'none'; script-src 'self'; connect-src 'self'; "
                                           "img-src 'self' blob:; style-src 'self' 'unsafe-inline'; "
-                                          "base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
-                "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer"}
+                                          "base-uri 'none'; form-action 'none'; frame-ancestors 'none'"}
 IMAGE_TYPES = {".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".png": "image/png"}
 
 
@@ -42,4 +42,4 @@ def add_page(app: FastAPI, localizer) -> None:
         kind = IMAGE_TYPES.get(Path(path).suffix.lower())
         if kind is None:
             raise QueryError("row", f"gallery row {row}'s tile {Path(path).name!r} is not a JPEG or PNG file", 415)
-        return FileResponse(path, media_type=kind, headers={"X-Content-Type-Options": "nosniff"})
+        return FileResponse(path, media_type=kind)

@@ -8,7 +8,10 @@ Starts `python -m geoloc.cli serve ckpt=... gallery=...` (uvicorn, one process) 
 --limits measures instead the costliest requests the limits allow (geoloc.apps.query.QueryLimits): a panorama of
 max_pixels searched at max_headings candidate headings, a limited-fov photo whose canvas is max_canvas_side columns
 and max_pixels pixels, and requests just past each limit (which must get 413 at once), one at a time against an idle
-server; for each it prints the latency and the server's peak memory (VmHWM) above its level after the warm-up.
+server; for each it prints the latency and the server's peak memory (VmHWM) above its level after the warm-up. The
+cases at topk=max_topk are the refiner's costliest (every top-k tile is refined): with a refiner checkpoint and its
+gallery (--ckpt, --gallery: e.g. experiment=refine_vigor and its unknown-heading variant) each line says how many
+tiles were refined.
 
 Without --ckpt / --gallery it builds them in --work (default $GEOLOC_CACHE/bench_serve, reused by later runs): the
 default recipe (`python train.py`) on a small synthetic render, stopped after one training step (the weights are
@@ -150,8 +153,14 @@ def limit_requests(url: str, server: subprocess.Popen, source: bytes) -> None:
     side, pixels = limits.max_canvas_side, limits.max_pixels
     pano_w = int((2 * pixels) ** 0.5)  # a 2:1 panorama of max_pixels
     photo_h = pixels // side  # a fov=90 photo whose canvas is max_canvas_side x photo_h <= max_pixels
+    most = str(limits.max_topk)
     cases = [  # (what, width, height, form fields, expected status)
         ("VIGOR-size panorama 2048x1024, heading searched", 2048, 1024, {}, 200),
+        (f"VIGOR-size panorama 2048x1024, heading given, topk={most}", 2048, 1024, {"heading": "0", "topk": most},
+         200),
+        (f"VIGOR-size panorama 2048x1024, heading searched, topk={most}", 2048, 1024, {"topk": most}, 200),
+        (f"max_pixels panorama {pano_w}x{pano_w // 2}, heading searched, topk={most}", pano_w, pano_w // 2,
+         {"topk": most}, 200),
         (f"max_pixels panorama {pano_w}x{pano_w // 2}, heading given", pano_w, pano_w // 2, {"heading": "0"}, 200),
         (f"max_pixels panorama {pano_w}x{pano_w // 2}, heading searched", pano_w, pano_w // 2, {}, 200),
         (f"fov=90 photo {side // 4}x{photo_h}: canvas {side}x{photo_h}, heading searched", side // 4, photo_h,
@@ -170,7 +179,9 @@ def limit_requests(url: str, server: subprocess.Popen, source: bytes) -> None:
             start = time.perf_counter()
             answer = http.post("/localize", files={"image": ("q.jpg", data, "image/jpeg")}, data=fields)
             seconds = time.perf_counter() - start
-            note = "" if answer.status_code == 200 else f": {answer.json()['detail'][:100]}..."
+            note = f": {answer.json()['detail'][:100]}..." if answer.status_code != 200 else ""
+            refined = answer.status_code == 200 and sum("refined_position" in hit for hit in answer.json()["topk"])
+            note = f", {refined} tiles refined" if refined else note
             print(f"{what} ({len(data) / 1e6:.1f} MB JPEG): {answer.status_code} in {seconds:.2f} s, peak "
                   f"{memory_mb(server.pid, 'VmHWM') - before:+.0f} MB over the {before:.0f} MB before{note}",
                   flush=True)

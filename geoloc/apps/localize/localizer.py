@@ -180,13 +180,14 @@ class Localizer:
 
     def _refine(self, answer: LocalizationResult, image: np.ndarray) -> None:
         """Each top-k tile's refined position and heading (the top-1's is the answer's refined_position, with its
-        probability map); left out when a tile's image cannot be read."""
-        tiles = [_tile(self.places.root, hit["path"]) for hit in answer.topk]
-        if any(tile is None for tile in tiles):
-            return
-        query, inputs = self.encoder.refine_inputs(image, answer.heading_deg, tiles, view=self.view)
+        probability map); left out when a tile's image cannot be read. The tiles are decoded a few at a time, as
+        the refiner takes them (CrossViewEncoder.refine), so the memory does not grow with topk."""
+        query = self.encoder.refine_query(image, answer.heading_deg, view=self.view)
         rows = [hit["row"] for hit in answer.topk]
-        out = self.encoder.refine(query, inputs, self.places.reference_extent_m[rows])
+        out = self.encoder.refine(query, lambda i: _tile(self.places.root, answer.topk[i]["path"]),
+                                  self.places.reference_extent_m[rows])
+        if out is None:
+            return
         # P(within 5 m | the tile holds the camera) where it holds: the refiner searches the heading, or it is given
         within = None
         if isinstance(self.within, Calibrator) and (self.encoder.refine_config.orientation_noise_deg >= 180.0
@@ -200,7 +201,7 @@ class Localizer:
                                        "heading_deg": float((hit["heading_deg"] + out["heading_offset_deg"][i]) % 360),
                                        "mass_5m": float(out["mass"][i]),
                                        **({} if within is None else {"confidence_within_5m": float(within[i])}),
-                                       **_tile_pixel(east, north, tiles[i].shape[:2],
+                                       **_tile_pixel(east, north, tuple(map(int, out["tile_size_px"][i])),
                                                      self.places.reference_extent_m[hit["row"]])}
         answer.refined_position = dict(answer.topk[0]["refined_position"])
         answer.probability_map = out["maps"][0]

@@ -100,17 +100,34 @@ def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_d
             raise ValueError(f"correlate: query_scale must hold {b} positive factors, got {query_scale.tolist()}")
     one_scale = query_scale is None or bool((query_scale == query_scale[0]).all())
     shared = b > 1 and query_maps.stride(0) == 0 and one_scale  # the same query map for every tile, at one scale
-    rotated = rotate_maps(query_maps[:1] if shared else query_maps, headings_deg,
-                          None if query_scale is None else query_scale[:1] if shared else query_scale)
+    windows = turned_windows(query_maps[:1] if shared else query_maps, headings_deg, kernel,
+                             None if query_scale is None else query_scale[:1] if shared else query_scale)
+    return correlate_turned(windows, reference_maps, kernel, overlap, shared)
+
+
+def turned_windows(query_maps: torch.Tensor, headings_deg: torch.Tensor, kernel: int,
+                   query_scale: torch.Tensor | None = None) -> torch.Tensor:
+    """B x C x n x n query maps -> B x K x C x N x (N/2 + 1), N = n + kernel: the spectrum of each map's central
+    kernel x kernel window, turned by each heading (and drawn query_scale[b] times larger) and flipped, which
+    correlate_turned lays on reference maps."""
+    n = query_maps.shape[-1]
+    rotated = rotate_maps(query_maps, headings_deg, query_scale)
     start = (n - kernel) // 2
-    window = rotated[..., start:start + kernel, start:start + kernel]  # B (or 1) x K x C x kernel x kernel
+    window = rotated[..., start:start + kernel, start:start + kernel]  # B x K x C x kernel x kernel
     # a correlation is a convolution with the flipped window: by FFT, several times faster than a grouped conv2d
     # of large kernels on a CPU; padded to n + kernel so nothing wraps around
+    return torch.fft.rfft2(window.float().flip(-1, -2), s=(n + kernel, n + kernel))
+
+
+def correlate_turned(windows: torch.Tensor, reference_maps: torch.Tensor, kernel: int, overlap: str = "mean",
+                     shared: bool = False) -> torch.Tensor:
+    """correlate's scores from its query side already computed: windows, turned_windows of B queries, or of one
+    query for every reference map (shared); reference_maps: B x C x n x n -> B x K x (n+1) x (n+1)."""
+    n = reference_maps.shape[-1]
     size = (n + kernel, n + kernel)
     reference = torch.fft.rfft2(reference_maps.float(), s=size)  # B x C x N x N/2+1
-    window = torch.fft.rfft2(window.float().flip(-1, -2), s=size)  # B (or 1) x K x C x N x N/2+1
-    product = (torch.einsum("bchw,kchw->bkhw", reference, window[0]) if shared
-               else torch.einsum("bchw,bkchw->bkhw", reference, window))
+    product = (torch.einsum("bchw,kchw->bkhw", reference, windows[0]) if shared
+               else torch.einsum("bchw,bkchw->bkhw", reference, windows))
     full = torch.fft.irfft2(product, s=size)
     # output corner o: the window's centre on the reference map's cell corner o (full index o + kernel/2 - 1)
     first = kernel // 2 - 1
@@ -146,13 +163,29 @@ class CorrelationRefiner(nn.Module):
     def match(self, query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg,
               query_scale: torch.Tensor | None = None) -> Refinement:
         headings = torch.as_tensor(headings_deg, dtype=torch.float32, device=query_maps.device).reshape(-1)
-        n = query_maps.shape[-1]
-        kernel = max(2, 2 * round(self.kernel_frac * n / 2))
-        scores = correlate(query_maps, reference_maps, headings, kernel, query_scale, self.overlap)
+        kernel = self.kernel(query_maps.shape[-1])
+        return self._refinement(correlate(query_maps, reference_maps, headings, kernel, query_scale, self.overlap),
+                                headings)
+
+    def matcher(self, query_map: torch.Tensor, headings_deg, query_scale: torch.Tensor | None = None):
+        """match of one query against tiles that come in parts, its map turned and transformed once: query_map
+        1 x C x n x n, query_scale one factor for every tile (None: no scale input) -> a function of B x C x n x n
+        reference maps -> their Refinement, equal to match's of the query map expanded to them."""
+        headings = torch.as_tensor(headings_deg, dtype=torch.float32, device=query_map.device).reshape(-1)
+        kernel = self.kernel(query_map.shape[-1])
+        scale = None if query_scale is None else torch.as_tensor(query_scale, dtype=torch.float32).reshape(1)
+        windows = turned_windows(query_map, headings, kernel, scale)
+        return lambda reference_maps: self._refinement(
+            correlate_turned(windows, reference_maps, kernel, self.overlap, shared=True), headings)
+
+    def kernel(self, n: int) -> int:
+        """The side of the query's window matched on n x n maps: even, at least 2."""
+        return max(2, 2 * round(self.kernel_frac * n / 2))
+
+    def _refinement(self, scores: torch.Tensor, headings: torch.Tensor) -> Refinement:
         scores = scores * self.log_scale.exp()
         b = scores.shape[0]
-        log_prob = F.log_softmax(scores.reshape(b, -1), dim=1).reshape(scores.shape)
-        return Refinement(log_prob, headings)
+        return Refinement(F.log_softmax(scores.reshape(b, -1), dim=1).reshape(scores.shape), headings)
 
     def forward(self, query: torch.Tensor, reference: torch.Tensor, headings_deg,
                 query_scale: torch.Tensor | None = None) -> Refinement:

@@ -28,11 +28,14 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
-from geoloc.tasks.crossview.refine import match, offset_m
+from geoloc.tasks.crossview.refine import matcher, offset_m
 from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
 from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
 from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov, view_canvas
+
+
+REFINE_CHUNK = 8  # tiles per refiner pass: bounds a top-k refinement's memory whatever topk
 
 
 class CrossViewEncoder:
@@ -152,38 +155,62 @@ class CrossViewEncoder:
         return self.model.reference(inputs.to(self.device)).float()
 
     # ---- refinement inside a tile ------------------------------------------------------------------------------
-    def refine_inputs(self, image: np.ndarray, heading: float, tiles: list[np.ndarray],
-                      view: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """A 360° street image of bearing `heading` and T aerial tiles (H×W×3 uint8) -> the refiner's inputs on the
-        CPU: (1×3×s×s query, north up: the image turned back by its heading; T×3×s×s tiles)."""
+    def refine_query(self, image: np.ndarray, heading: float, view: str | None = None) -> torch.Tensor:
+        """A 360° street image of bearing `heading` -> the refiner's query input on the CPU: 1×3×s×s, north up (the
+        image turned back by its heading)."""
         from dataclasses import replace
 
         view = self.query_view if view is None else view
         side = self.refine_config.side(self.data.aerial_size)
         north_up = view_canvas(self._street(image, 360.0, view), 360.0, heading)
-        query = to_tensor(align_query(north_up, replace(self.data, aerial_size=side), view))[None]
-        return query, torch.stack([to_tensor(resize(tile, (side, side))) for tile in tiles])
+        return to_tensor(align_query(north_up, replace(self.data, aerial_size=side), view))[None]
+
+    def refine_tile(self, tile: np.ndarray) -> torch.Tensor:
+        """An aerial tile (H×W×3 uint8) -> the refiner's reference input on the CPU: 3×s×s."""
+        side = self.refine_config.side(self.data.aerial_size)
+        return to_tensor(resize(tile, (side, side)))
 
     @torch.no_grad()
-    def refine(self, query: torch.Tensor, tiles: torch.Tensor, extent_m: np.ndarray, radius_m: float = 5.0) -> dict:
-        """The refiner's answer for one query (refine_inputs) in each of T tiles covering extent_m (T×2 metres,
-        height and width): {"offset_m": T×2 (east, north) metres from each tile's centre, "heading_offset_deg": (T,)
-        degrees to add to the query's heading (0 when the refiner was trained with a known heading), "mass": (T,)
-        the probability within radius_m of each position (the refiner's own score), "maps": T×R×C the
-        probability of each position (a lattice over the tile, edges included)}."""
+    def refine(self, query: torch.Tensor, tile, extent_m: np.ndarray, radius_m: float = 5.0,
+               chunk: int = REFINE_CHUNK) -> dict | None:
+        """The refiner's answer for one query (refine_query) in each of T tiles covering extent_m (T×2 metres,
+        height and width). tile(i): tile i's image (H×W×3 uint8), or None where it cannot be read; the tiles are
+        decoded, encoded and matched `chunk` at a time, as they are consumed, so the memory does not grow with T,
+        and the query's map is encoded once and turned once per query scale (the tiles are taken scale by scale;
+        the answer is the one a single batch of all T gives). -> {"offset_m": T×2 (east, north) metres from each
+        tile's centre, "heading_offset_deg": (T,) degrees to add to the query's heading (0 when the refiner was
+        trained with a known heading), "mass": (T,) the probability within radius_m of each position (the
+        refiner's own score), "maps": T×R×C the probability of each position (a lattice over the tile, edges
+        included), "tile_size_px": T×2 each tile's (H, W)}, or None when a tile cannot be read."""
         if self.refiner is None:
             raise ConfigError(f"{self.source} has no refiner: train one (docs/localisation.md)")
-        extent = torch.as_tensor(np.asarray(extent_m, np.float64), dtype=torch.float32).reshape(-1, 2)
+        extent = np.asarray(extent_m, np.float64).reshape(-1, 2)
         maps = self.refiner.encode_query(query.to(self.device))
-        references = self.refiner.encode_reference(tiles.to(self.device))
         candidates = self.refine_config.candidates(getattr(self.refiner, "heading_bins", 36))
-        out = match(self.refiner, self.refine_config, maps.expand(len(references), *maps.shape[1:]), references,
-                    candidates, np.asarray(extent_m, np.float64).reshape(-1, 2))
-        east_north = offset_m(out.position().cpu().double().numpy(), np.asarray(extent_m, np.float64).reshape(-1, 2))
-        turn = out.heading().cpu().numpy() if self.refine_config.orientation_noise_deg > 0 else np.zeros(len(tiles))
-        return {"offset_m": east_north, "heading_offset_deg": turn,
-                "mass": out.mass_within(radius_m, extent.to(self.device)).cpu().numpy(),
-                "maps": out.position_log_prob.exp().cpu().numpy()}
+        scales = self.refine_config.query_scale(extent)
+        groups = ([(None, np.arange(len(extent)))] if scales is None else
+                  [(scale, np.flatnonzero(scales.numpy() == scale.item())) for scale in scales.unique()])
+        out = {}
+        for scale, rows in groups:
+            matched = matcher(self.refiner, maps, candidates, scale)
+            for start in range(0, len(rows), chunk):
+                part = rows[start:start + chunk]
+                tiles = [tile(int(i)) for i in part]
+                if any(image is None for image in tiles):
+                    return None
+                inputs = torch.stack([self.refine_tile(image) for image in tiles])
+                found = matched(self.refiner.encode_reference(inputs.to(self.device)))
+                answer = {"offset_m": offset_m(found.position().cpu().double().numpy(), extent[part]),
+                          "heading_offset_deg": (found.heading().cpu().numpy()
+                                                 if self.refine_config.orientation_noise_deg > 0
+                                                 else np.zeros(len(part))),
+                          "mass": found.mass_within(radius_m, torch.as_tensor(
+                              extent[part], dtype=torch.float32, device=self.device)).cpu().numpy(),
+                          "maps": found.position_log_prob.exp().cpu().numpy(),
+                          "tile_size_px": np.array([image.shape[:2] for image in tiles])}
+                for key, value in answer.items():
+                    out.setdefault(key, np.zeros((len(extent), *value.shape[1:]), value.dtype))[part] = value
+        return out
 
     # ---- export ------------------------------------------------------------------------------------------------
     @property

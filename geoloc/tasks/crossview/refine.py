@@ -127,6 +127,20 @@ def match(refiner, refine: RefineConfig, query_maps, reference_maps, candidates,
     return refiner.match(query_maps, reference_maps, candidates, query_scale=scale.to(query_maps.device))
 
 
+def matcher(refiner, query_map, candidates, scale=None):
+    """match of one query map (1 x C x n x n) against tiles of one query scale (a factor, None without the scale
+    input) that come in parts: a function of reference maps -> their Refinement, the query's side computed once
+    where the refiner can (its `matcher`); a refiner without one is matched with the map expanded to each part."""
+    if callable(getattr(refiner, "matcher", None)):
+        return refiner.matcher(query_map, candidates, scale)
+
+    def matched(reference_maps):
+        b = len(reference_maps)
+        scales = {} if scale is None else {"query_scale": torch.as_tensor(scale).reshape(1).expand(b)}
+        return refiner.match(query_map.expand(b, *query_map.shape[1:]), reference_maps, candidates, **scales)
+    return matched
+
+
 # ---- items --------------------------------------------------------------------------------------------------
 def eval_offset(index: int, noise_deg: float) -> float:
     """The fixed heading of test query `index` under orientation noise +-X: U(-X, X) from numpy's

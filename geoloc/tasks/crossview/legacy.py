@@ -7,7 +7,9 @@ format 2  registered components: `backbone: {name: vgg16, ...}`, `head: {name: m
           and the queue's buffers under `loss.queue.*`.
 
 A correlation refiner stored before its `overlap` key existed divided every score by the whole window: it keeps
-that (`with_refiner_overlap`), so its figures stay as they were measured.
+that, so its figures stay as they were measured. A refiner stored with `scale_jitter` (a training augmentation of the
+ground scale that one development version had, 2026-11-27, and that never acts at evaluation) loads without it.
+Both are `upgraded_refiner`.
 """
 
 from __future__ import annotations
@@ -39,13 +41,17 @@ def upgraded_config(stored: DictConfig) -> DictConfig:
     return OmegaConf.create(cfg)
 
 
-def with_refiner_overlap(stored: DictConfig) -> DictConfig:
-    """`stored` with `refiner.overlap: window` where a correlation refiner's section predates the key."""
+def upgraded_refiner(stored: DictConfig) -> DictConfig:
+    """`stored` with `refiner.overlap: window` where a correlation refiner's section predates the key, and without
+    the dropped training-only `refiner.scale_jitter`."""
     refiner = OmegaConf.select(stored, "refiner")
-    if refiner is None or refiner.get("name") != "correlation" or "overlap" in refiner:
+    if refiner is None or refiner.get("name") != "correlation":
+        return stored
+    if "overlap" in refiner and "scale_jitter" not in refiner:
         return stored
     cfg = OmegaConf.to_container(stored, resolve=False)
-    cfg["refiner"]["overlap"] = "window"
+    cfg["refiner"].setdefault("overlap", "window")
+    cfg["refiner"].pop("scale_jitter", None)
     return OmegaConf.create(cfg)
 
 

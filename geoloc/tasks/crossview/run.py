@@ -17,7 +17,7 @@ from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, Cros
                                            parse_evaluation, parse_training)
 from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, calibration_data, known_heading
 from geoloc.tasks.crossview.gallery_folder import check_target
-from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state, with_refiner_overlap
+from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state, upgraded_refiner
 from geoloc.tasks.crossview.refine import METRE_LABELS
 from geoloc.tasks.crossview.task import CrossViewTask
 from geoloc.tasks.crossview.validation_keys import check_monitor, validation_plan
@@ -118,7 +118,7 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
 def stored_config(state: dict) -> DictConfig:
     """A checkpoint's config in today's layout (older layouts upgraded: legacy.py)."""
     stored = OmegaConf.create(state["config"])
-    return upgraded_config(stored) if is_old_layout(stored) else with_refiner_overlap(stored)
+    return upgraded_config(stored) if is_old_layout(stored) else upgraded_refiner(stored)
 
 
 def restored_task(state: dict, ckpt, stored: DictConfig) -> CrossViewTask:

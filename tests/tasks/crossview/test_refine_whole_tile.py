@@ -8,7 +8,7 @@ import pytest
 import torch
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import whole_tile_summary
-from geoloc.tasks.crossview.legacy import with_refiner_overlap
+from geoloc.tasks.crossview.legacy import upgraded_refiner
 from geoloc.tasks.crossview.refine import RefineConfig, tile_pairs, truth_fraction
 from omegaconf import OmegaConf
 
@@ -58,14 +58,16 @@ def test_the_ground_scale_is_an_input_only_where_asked():
         RefineConfig(query_extent_m=-1.0)
 
 
-def test_a_stored_correlation_refiner_keeps_its_window_normalisation():
+def test_a_stored_correlation_refiner_keeps_its_window_normalisation_and_loads_without_scale_jitter():
     old = OmegaConf.create({"refiner": {"name": "correlation", "width": 32}, "model": {"dim": 8}})
-    assert with_refiner_overlap(old).refiner.overlap == "window"
+    assert upgraded_refiner(old).refiner.overlap == "window"
     new = OmegaConf.create({"refiner": {"name": "correlation", "overlap": "mean"}})
-    assert with_refiner_overlap(new).refiner.overlap == "mean"
+    assert upgraded_refiner(new).refiner.overlap == "mean"
     plug_in = OmegaConf.create({"refiner": {"name": "dot_map"}})
-    assert "overlap" not in with_refiner_overlap(plug_in).refiner
-    assert with_refiner_overlap(OmegaConf.create({"model": {"dim": 8}})) == OmegaConf.create({"model": {"dim": 8}})
+    assert "overlap" not in upgraded_refiner(plug_in).refiner
+    assert upgraded_refiner(OmegaConf.create({"model": {"dim": 8}})) == OmegaConf.create({"model": {"dim": 8}})
+    jittered = OmegaConf.create({"refiner": {"name": "correlation", "overlap": "mean", "scale_jitter": 0.1}})
+    assert OmegaConf.to_container(upgraded_refiner(jittered).refiner) == {"name": "correlation", "overlap": "mean"}
 
 
 def test_query_scale_reaches_the_refiner_through_match():

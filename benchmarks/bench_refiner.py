@@ -2,11 +2,13 @@
 on one thread, at the refiner's input sides and with a known heading (1 bin) or an unknown one (12 or 36 bins).
 
     OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128 256] [--bins 1 12 36] [--tiles 5] [--repeats 20]
-        [--overlap mean|window] [--query-scale 1.13]
+        [--overlap mean|window] [--query-scale 1.13] [--kernel-frac 1.0] [--context 1]
 
 Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once).
 --query-scale S matches with the ground scale as an input (the query's map drawn S times larger for every tile, as
-refiner.query_extent_m does for tiles of one extent); 0 (the default) without it."""
+refiner.query_extent_m does for tiles of one extent); 0 (the default) without it. --kernel-frac and --context are
+refiner.kernel_frac (the share of the query map's side matched) and refiner.context (extra dilated blocks in each
+encoder); experiment=refine_vigor is --widths 32 --sides 128 --bins 1 --kernel-frac 1.0 --context 1."""
 
 from __future__ import annotations
 
@@ -41,6 +43,8 @@ def main() -> None:
                         help="refiner.width = refiner.channels (16: the default, 32: the refine_vigor recipe)")
     parser.add_argument("--overlap", default="mean", choices=["mean", "window"])
     parser.add_argument("--query-scale", type=float, default=0.0)
+    parser.add_argument("--kernel-frac", type=float, default=0.5, help="refiner.kernel_frac")
+    parser.add_argument("--context", type=int, default=0, help="refiner.context")
     args = parser.parse_args()
     scale = torch.full((args.tiles,), args.query_scale) if args.query_scale else None
     torch.set_num_threads(args.threads)
@@ -48,7 +52,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for width, side in ((w, s) for w in args.widths for s in args.sides):
         refiner = registry.build("refiner", {"name": "correlation", "width": width, "channels": width,
-                                             "overlap": args.overlap}).eval()
+                                             "overlap": args.overlap, "kernel_frac": args.kernel_frac,
+                                             "context": args.context}).eval()
         query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
         for bins in args.bins:
             headings = torch.arange(bins) * (360.0 / bins)

@@ -14,12 +14,15 @@ from conftest import TINY, compose_train
 from helpers.crossview_runs import train_cfg
 
 UNKNOWN = "is not a metric that validation reports"
+# the refinement recipes on the tiny VIGOR (TINY names cvusa, which would take the recipes' vigor settings)
+REFINE = ["experiment=refine_vigor", "dataset=vigor", "dataset.preset=vigor_tiny"]
+REFINE_UNKNOWN = ["experiment=refine_vigor_unknown_heading", "dataset=vigor", "dataset.preset=vigor_tiny"]
 
 
 @pytest.mark.parametrize("recipe, monitor", [
     ([], "R@l"),  # an ell for a one
-    (["experiment=refine_vigor"], "fine_median"),
-    (["experiment=refine_vigor_unknown_heading"], "fine_heading_median"),  # found after 15 epochs before
+    ([*REFINE], "fine_median"),
+    ([*REFINE_UNKNOWN], "fine_heading_median"),  # found after 15 epochs before
     ([], "fine_median_m"),  # a refiner's key, without a refiner
     (["dataset.random_heading=true"], "median_m"),  # the heading search reports recall and heading errors
 ])
@@ -31,8 +34,8 @@ def test_a_monitor_no_validation_reports_is_refused_at_the_parse(recipe, monitor
 
 @pytest.mark.parametrize("recipe, monitor", [
     ([], None), ([], "R@1%"), ([], "median_m"), ([], "reference_spread"),
-    (["experiment=refine_vigor"], "fine_median_m"), (["experiment=refine_vigor"], "whole_tile_median_m"),
-    (["experiment=refine_vigor_unknown_heading"], "fine_heading_median_deg"),
+    ([*REFINE], "fine_median_m"), ([*REFINE], "whole_tile_median_m"),
+    ([*REFINE_UNKNOWN], "fine_heading_median_deg"),
     (["dataset.random_heading=true"], "heading_median_deg"),
 ])
 def test_every_key_validation_reports_is_accepted(recipe, monitor):

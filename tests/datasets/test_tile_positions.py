@@ -183,5 +183,6 @@ def test_one_to_one_cameras_sit_at_the_tile_centre(tmp_path):
     np.testing.assert_allclose(s.reference_metres_per_px, 1.5)
     np.testing.assert_array_equal(s.query_tile_offset_m(), 0.0)
     marker = json.loads((root / MARKER).read_text())
-    (root / MARKER).write_text(json.dumps({**marker, "complete": False}))  # an unfinished render: no scale known
-    assert cvusa(str(root), "train").reference_metres_per_px is None
+    (root / MARKER).write_text(json.dumps({**marker, "complete": False}))  # an unfinished render: refused, not read
+    with pytest.raises(ValueError, match="unfinished geoloc synthetic render"):  # as a release's frame and scale
+        cvusa(str(root), "train")

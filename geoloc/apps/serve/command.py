@@ -33,7 +33,7 @@ USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=800
               API is described by /openapi.json)
 
 POST /localize (multipart field image; fov, topk, heading, heading_prior, abstain), GET /health, GET / (the page:
-open http://HOST:PORT/ in a browser) and GET /tiles/{{row}}; see README "Query service"."""
+open http://HOST:PORT/ in a browser) and GET /tiles/{{row}}; see docs/apps.md, "Query service"."""
 
 
 @dataclass

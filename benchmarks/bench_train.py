@@ -8,10 +8,18 @@ Paper size: batch 64, 288 x 288 for both branches (IPT street image and aerial),
   a fixed batch already on the device; median of --steps after --warmup steps. On CUDA: peak GPU memory too.
 - loader: the Trainer's DataLoader (EpochSampler, --workers workers, pinned memory on CUDA) over a CVUSA-layout
   dataset, decode + IPT + augmentation included; pairs/s over --loader-batches batches after the first.
+- fit (--fit): `Trainer.fit` over the step's items (decoded once, held in memory and repeated to --fit-pairs pairs
+  an epoch), --fit-epochs epochs, no validation; every epoch writes last.pt and best.pt, as an improving epoch does.
+  Pairs/s over the epochs after the first (which pays for start-up and compiling), beside the step's, and the time
+  between epochs: from an epoch's last step to the next epoch's first (minus one step). --writer sync-twice
+  writes as the trainer did before: last.pt and best.pt each serialised, in the training thread.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_train.py --batch 2 --steps 2 --workers 1         # CPU, a few minutes
     python benchmarks/bench_train.py --device cuda --workers 8                                  # fp32, batch 64
     python benchmarks/bench_train.py --device cuda --workers 8 --precision bf16 --channels-last [--compile]
+    python benchmarks/bench_train.py --device cuda --workers 8 --skip-loader --fit [--writer sync-twice]
+    OMP_NUM_THREADS=1 python benchmarks/bench_train.py --recipe default --skip-loader --fit --fit-pairs 64 \
+        --batch 16 --workers 0                                              # the CPU's default recipe
 
 Data: --root DIR (CVUSA layout, e.g. real CVUSA), else a synthetic one is generated once into --cache
 (`python data_prep/synthetic.py --layout cvusa --out DIR --train 64 --val 8 --preset cvusa`).
@@ -22,6 +30,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -37,6 +46,7 @@ from geoloc.tasks.crossview.config import parse_training  # noqa: E402
 from geoloc.tasks.crossview.data_config import parse_dataset  # noqa: E402
 from geoloc.tasks.crossview.datasets import build  # noqa: E402
 from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
+from geoloc.engine import checkpoint as ckpt_io  # noqa: E402
 from geoloc.tasks.crossview.run import build_task  # noqa: E402
 
 
@@ -53,7 +63,9 @@ def dataset_root(args) -> Path:
 
 
 def config(args, root: Path, run_dir: Path):
-    overrides = ["experiment=paper_cvusa", "backbone.pretrained=false", f"dataset.root={root}",
+    paper = getattr(args, "recipe", "paper") == "paper"  # the default recipe reads its embedded synthetic world
+    recipe = ["experiment=paper_cvusa", "backbone.pretrained=false", f"dataset.root={root}"] if paper else []
+    overrides = [*recipe,
                  f"dataset.batch_size={args.batch}", f"trainer.device={args.device}", f"trainer.num_workers={args.workers}",
                  f"trainer.precision={args.precision}", f"trainer.channels_last={args.channels_last}",
                  f"trainer.compile={args.compile}", "trainer.progress=false", f"run_dir={run_dir}"]
@@ -93,6 +105,133 @@ def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
     return result
 
 
+class Repeated(torch.utils.data.Dataset):
+    """`items` (decoded once) of `pairs` repeated to `n`: an epoch of the size asked for without decoding it; the
+    pairs' other attributes (split, labels) as they are."""
+
+    def __init__(self, pairs, items: list, n: int):
+        self.pairs, self.items, self.n = pairs, items, n
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["pairs"], name)
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, key):
+        return self.items[(key[0] if isinstance(key, tuple) else key) % len(self.items)]
+
+
+class EveryEpochBest:
+    """The trainer's writer, told that every epoch improved: each epoch writes last.pt and best.pt."""
+
+    def __init__(self, writer, run_dir: Path):
+        self.writer, self.best = writer, run_dir / "best.pt"
+
+    def submit(self, state, path, also=()):
+        self.writer.submit(state, path, also=(self.best,))
+
+    def join(self):
+        self.writer.join()
+
+
+class SerialisedTwice:
+    """How the trainer wrote before: each file serialised, fsynced and renamed in the training thread."""
+
+    def submit(self, state, path, also=()):
+        for target in (path, *also):
+            ckpt_io.save_atomic(state, target)
+
+    def join(self):
+        pass
+
+
+class NoWrites:
+    """No checkpoint at all: what the epochs cost without the writer."""
+
+    def submit(self, state, path, also=()):
+        pass
+
+    def join(self):
+        pass
+
+
+class EpochClock:
+    """Times of the task's hooks, read around the trainer: each epoch's start and each step's end (synchronised
+    with the GPU at an epoch's first and last step, so a time is the work's, not its launch's)."""
+
+    def __init__(self, task, trainer: Trainer, steps_per_epoch: int):
+        self.starts, self.first_ends, self.last_ends, self.first_batches = {}, {}, {}, {}
+        self.sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+        step_end, epoch_start = task.on_train_batch_end, task.on_train_epoch_start
+        counts: dict[int, int] = {}
+
+        def on_train_epoch_start(engine):
+            self.starts[engine.epoch] = time.perf_counter()
+            epoch_start(engine)
+
+        def on_train_batch_end(outputs):
+            step_end(outputs)
+            epoch = trainer.epoch
+            counts[epoch] = counts.get(epoch, 0) + 1
+            if counts[epoch] in (1, steps_per_epoch):
+                self.sync()
+                (self.first_ends if counts[epoch] == 1 else self.last_ends)[epoch] = time.perf_counter()
+
+        task.on_train_epoch_start, task.on_train_batch_end = on_train_epoch_start, on_train_batch_end
+        make_loader = task.train_dataloader
+        task.train_dataloader = lambda *args: TimedLoader(make_loader(*args), self, trainer)
+
+
+class TimedLoader:
+    """A loader that notes when each epoch's first batch comes out of it."""
+
+    def __init__(self, loader, clock: EpochClock, trainer: Trainer):
+        self.loader, self.clock, self.trainer = loader, clock, trainer
+
+    def __getattr__(self, name):
+        return getattr(self.__dict__["loader"], name)
+
+    def __len__(self):
+        return len(self.loader)
+
+    def __iter__(self):
+        for i, batch in enumerate(self.loader):
+            if i == 0:
+                self.clock.first_batches[self.trainer.epoch] = time.perf_counter()
+            yield batch
+
+
+def bench_fit(cfg, trainer_cfg: TrainerConfig, train_set, args, step_s: float | None) -> dict:
+    seed_everything(0)
+    run = parse_training(cfg)
+    task = build_task(run.model, run.components, run.trainer.max_epochs)
+    items = [train_set[(i % len(train_set), 0)] for i in range(min(len(train_set), args.fit_pairs))]
+    pairs = Repeated(train_set, items, args.fit_pairs)
+    run_dir = Path(tempfile.mkdtemp(prefix="geoloc_bench_fit_"))
+    trainer = Trainer(trainer_cfg, run_dir)
+    writer = {"background": ckpt_io.CheckpointWriter, "sync-twice": SerialisedTwice, "none": NoWrites}[args.writer]()
+    trainer.writer = EveryEpochBest(writer, run_dir)
+    steps = len(pairs) // args.batch
+    clock = EpochClock(task, trainer, steps)
+    t0 = time.perf_counter()
+    trainer.fit(task, pairs, None, args.batch)
+    total_s = time.perf_counter() - t0
+    epochs = sorted(clock.last_ends)
+    timed = clock.last_ends[epochs[-1]] - clock.last_ends[epochs[0]]  # the epochs after the first, gaps included
+    gaps = [clock.first_ends[e + 1] - clock.last_ends[e] for e in epochs[:-1]]
+    to_start = [clock.starts[e + 1] - clock.last_ends[e] for e in epochs[:-1]]
+    to_batch = [clock.first_batches[e + 1] - clock.starts[e + 1] for e in epochs[:-1]]
+    result = {"fit_pairs_s": steps * args.batch * (len(epochs) - 1) / timed, "fit_total_s": total_s,
+              "between_epochs_s": statistics.median(gaps), "last_step_to_epoch_start_s": statistics.median(to_start),
+              "epoch_start_to_first_batch_s": statistics.median(to_batch),
+              "fit_steps_per_epoch": steps, "writer": args.writer,
+              "checkpoint_mb": (run_dir / "last.pt").stat().st_size / 1e6 if (run_dir / "last.pt").exists() else 0.0}
+    if step_s is not None:
+        result["idle_between_epochs_s"] = max(0.0, result["between_epochs_s"] - step_s)
+    return result
+
+
 def bench_loader(trainer: Trainer, train_set, args) -> dict:
     loader = trainer.loader(train_set, args.batch, train=True)
     pairs, t0, epoch = 0, None, 0
@@ -123,11 +262,20 @@ def main(argv=None) -> dict:
     p.add_argument("--cache", default="/tmp/geoloc_bench/cvusa64")
     p.add_argument("--skip-step", action="store_true")
     p.add_argument("--skip-loader", action="store_true")
+    p.add_argument("--recipe", default="paper", choices=["paper", "default"],
+                   help="paper: experiment=paper_cvusa (backbone.pretrained=false); default: `python train.py`'s")
+    p.add_argument("--fit", action="store_true", help="also Trainer.fit over the step's items (see above)")
+    p.add_argument("--fit-pairs", type=int, default=2048, help="fit: pairs an epoch")
+    p.add_argument("--fit-epochs", type=int, default=3, help="fit: epochs (the first is not timed)")
+    p.add_argument("--writer", default="background", choices=["background", "sync-twice", "none"],
+                   help="fit: the trainer's checkpoint writer, the one it had before (sync-twice), or none")
     args = p.parse_args(argv)
 
-    root = dataset_root(args)
+    root = dataset_root(args) if args.recipe == "paper" else "the default recipe's embedded world"
     cfg = config(args, root, Path("/tmp/geoloc_bench/run"))
-    trainer = Trainer(checked(cfg.trainer, TrainerConfig, "trainer"), "/tmp/geoloc_bench/run")
+    cfg.trainer.max_epochs = args.fit_epochs
+    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
+    trainer = Trainer(trainer_cfg, "/tmp/geoloc_bench/run")
     train_set = build(*parse_dataset(cfg.dataset), "train", train=True)
     print(f"device {trainer.device}, precision {args.precision}, channels_last {args.channels_last}, compile "
           f"{args.compile}, batch {args.batch}, workers {args.workers}, torch threads {torch.get_num_threads()}, "
@@ -141,6 +289,17 @@ def main(argv=None) -> dict:
         mem = f", peak GPU memory {result['peak_gib']:.1f} GiB" if "peak_gib" in result else ""
         print(f"step: {result['step_s']:.2f} s = {result['step_pairs_s']:.2f} pairs/s (query "
               f"{result['query_shape']}, reference {result['reference_shape']}){mem}")
+    if args.fit:
+        result.update(bench_fit(cfg, trainer_cfg, train_set, args, result.get("step_s")))
+        ratio = f", fit / step = {result['fit_pairs_s'] / result['step_pairs_s']:.3f}" if "step_pairs_s" in result else ""
+        idle = (f", idle {result['idle_between_epochs_s']:.2f} s beyond one step" if "idle_between_epochs_s" in result
+                else "")
+        print(f"fit: {result['fit_pairs_s']:.2f} pairs/s over epochs 1-{args.fit_epochs - 1} of "
+              f"{result['fit_steps_per_epoch']} steps{ratio}; writer {args.writer}, checkpoint "
+              f"{result['checkpoint_mb']:.0f} MB; last step -> next epoch's first step "
+              f"{result['between_epochs_s']:.2f} s (to the epoch's start {result['last_step_to_epoch_start_s']:.2f} s, "
+              f"then to its first batch {result['epoch_start_to_first_batch_s']:.2f} s)"
+              f"{idle}", flush=True)
     if "loader_pairs_s" in result and "step_pairs_s" in result:
         ratio = result["loader_pairs_s"] / result["step_pairs_s"]
         print(f"loader / step = {ratio:.1f} ({'keeps up' if ratio >= 1 else 'the loader is the bottleneck'})")

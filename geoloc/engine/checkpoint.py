@@ -1,4 +1,8 @@
-"""Checkpoints are plain dicts, written atomically and loaded with weights_only=True."""
+"""Checkpoints are plain dicts, written atomically and loaded with weights_only=True.
+
+The trainer writes them through a CheckpointWriter: the state is copied to the CPU when the epoch ends, then
+serialised once on a background thread while the next epoch trains; best.pt is a hard link to (or, where the file
+system has none, a copy of) the last.pt written in the same epoch."""
 
 from __future__ import annotations
 
@@ -7,7 +11,9 @@ import json
 import math
 import os
 import random
+import shutil
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +39,95 @@ def save_atomic(obj: dict, path: str | Path) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def link_atomic(source: str | Path, path: str | Path) -> None:
+    """`path` becomes the file `source` names, atomically: a hard link where the file system has them (no bytes
+    written: a later save_atomic of `source` renames a new file over it and leaves this one as it is), else an
+    fsynced copy."""
+    source, path = Path(source), Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        try:
+            os.link(source, tmp)
+        except OSError:  # no hard links here (some network and FUSE file systems): a copy, made durable
+            shutil.copyfile(source, tmp)
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def on_cpu(obj: Any) -> Any:
+    """`obj` with every tensor copied to the CPU (dicts, lists and tuples followed): the state as it is now, which a
+    background write can serialise while training changes the live tensors. GPU tensors are copied without
+    blocking into pinned memory (torch's host allocator keeps those blocks for the next epoch's copy), then waited
+    for once: a pageable copy of a paper-size state (938 MB) kept the GPU idle for about 0.5 s."""
+    copied_from_gpu = []
+
+    def copy(value):
+        if isinstance(value, torch.Tensor):
+            if value.is_cuda:
+                copied_from_gpu.append(value.device)
+                return value.detach().to("cpu", non_blocking=True)
+            return value.detach().to("cpu", copy=True)
+        if isinstance(value, dict):
+            return {k: copy(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return type(value)(copy(v) for v in value)
+        return value
+
+    out = copy(obj)
+    for device in set(copied_from_gpu):
+        torch.cuda.synchronize(device)  # the copies are complete before anyone reads them
+    return out
+
+
+class CheckpointWriter:
+    """Writes one state per call to `path` (atomically) and links it to each of `also`, on a background thread.
+
+    submit() first waits for the previous write (one write in flight at most) and raises its error if it failed;
+    join() waits for the last one, and is called at the end of fit, also when training fails, so a finished
+    epoch's last.pt is on disk whatever follows. background=False writes in the caller's thread (benchmarks
+    compare both)."""
+
+    def __init__(self, background: bool = True):
+        self.background = background
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def submit(self, state: dict, path: Path, also: tuple[Path, ...] = ()) -> None:
+        self.join()
+        state = on_cpu(state)  # before training goes on: the next step changes the live tensors
+        if not self.background:
+            self._write(state, path, also)
+            return
+        self._thread = threading.Thread(target=self._write_catching, args=(state, path, also),
+                                        name="geoloc-checkpoint", daemon=False)
+        self._thread.start()
+
+    def join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise RuntimeError(f"writing a checkpoint failed: {error}") from error
+
+    @staticmethod
+    def _write(state: dict, path: Path, also: tuple[Path, ...]) -> None:
+        save_atomic(state, path)
+        for other in also:
+            link_atomic(path, other)
+
+    def _write_catching(self, state, path, also) -> None:
+        try:
+            self._write(state, path, also)
+        except BaseException as err:  # raised in the training thread by the next submit() or join()
+            self._error = err
 
 
 def load(path: str | Path, map_location: str | torch.device = "cpu") -> dict:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 AUTO = "auto"
@@ -34,3 +36,24 @@ def resolve_device(device: str | None = None) -> torch.device:
         raise ValueError(f"device={name!r} but this machine has {torch.cuda.device_count()} CUDA device(s): use "
                          f"one of {valid}")
     return chosen
+
+
+def amp_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of trainer.precision ("32" | "bf16" | "16") on `device`: None (no autocast) for "32" and
+    on the CPU, where geoloc computes in float32 whatever the run's precision."""
+    if device.type != "cuda" or precision == "32":
+        return None
+    return torch.bfloat16 if precision == "bf16" else torch.float16
+
+
+def autocast(precision: str, device: torch.device):
+    """The run's autocast context on `device` (a no-op where amp_dtype is None): training, validation, evaluate.py
+    and the apps compute alike."""
+    dtype = amp_dtype(precision, device)
+    return contextlib.nullcontext() if dtype is None else torch.autocast(device.type, dtype=dtype)
+
+
+def on_for_cuda(setting, device: torch.device) -> bool:
+    """A GPU-first switch (trainer.channels_last, trainer.compile): "auto" is on for CUDA and off on the CPU, where
+    it would change the figures or cost more than it gives; true/false as given."""
+    return device.type == "cuda" if setting == AUTO else bool(setting)

@@ -8,7 +8,6 @@ Shaped like a minimal Lightning Fabric loop (see docs/architecture.md for the Ta
 
 from __future__ import annotations
 
-import contextlib
 import math
 import random
 import time
@@ -24,6 +23,7 @@ from tqdm import tqdm
 import geoloc
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
+from geoloc.engine.device import AUTO, amp_dtype, autocast, on_for_cuda
 from geoloc.engine.env import record_environment
 from geoloc.engine.logging import RunLogger
 from geoloc.engine.sampling import EpochSampler
@@ -44,8 +44,10 @@ class TrainerConfig:
     seed: int = 0
     log_every_n_steps: int = 10
     limit_train_batches: int = 0  # 0 = all
-    channels_last: bool = False
-    compile: bool = False
+    # GPU-first switches: "auto" is on for CUDA and off on the CPU (where they would change the figures or cost
+    # more than they give); true/false as given. A compile that fails falls back to eager with one line.
+    channels_last: Any = "auto"  # true | false | auto
+    compile: Any = "auto"  # true | false | auto
     progress: bool = True
     monitor: str | None = None  # the validation metric that selects best.pt; null = the task's default
     monitor_mode: str = "max"  # max | min
@@ -61,6 +63,9 @@ class TrainerConfig:
             raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"trainer.device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        for key in ("channels_last", "compile"):
+            if getattr(self, key) not in (True, False, AUTO):
+                raise ValueError(f"trainer.{key} must be true, false or auto, got {getattr(self, key)!r}")
         if self.monitor_mode not in ("max", "min"):
             raise ValueError(f"trainer.monitor_mode must be 'max' or 'min', got {self.monitor_mode!r}")
 
@@ -131,9 +136,10 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.config_yaml = config_yaml
         self.device = dist.init_from_env(cfg.device)
-        self.amp_dtype = None
-        if self.device.type == "cuda" and cfg.precision != "32":
-            self.amp_dtype = torch.bfloat16 if cfg.precision == "bf16" else torch.float16
+        self.amp_dtype = amp_dtype(cfg.precision, self.device)
+        # trainer.channels_last / trainer.compile resolved for this device ("auto": on for CUDA only)
+        self.channels_last = on_for_cuda(cfg.channels_last, self.device)
+        self.compile = on_for_cuda(cfg.compile, self.device)
         # GradScaler only matters for fp16; disabled it is a transparent pass-through (one code path).
         self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp_dtype == torch.float16)
         self.logger = RunLogger(self.run_dir)
@@ -144,12 +150,11 @@ class Trainer:
         self.best: dict[str, float] = {}
         self.init_from: dict | None = None  # where the weights of an init_from= run came from (resume.init_from)
         self.engine = Engine(self)
+        self.writer = ckpt_io.CheckpointWriter()  # last.pt and best.pt, written while the next epoch trains
 
     # ---- helpers -------------------------------------------------------------------------------------------
     def autocast(self):
-        if self.amp_dtype is None:
-            return contextlib.nullcontext()
-        return torch.autocast(self.device.type, dtype=self.amp_dtype)
+        return autocast(self.cfg.precision, self.device)
 
     def check_finite(self, loss: torch.Tensor) -> None:
         if not torch.isfinite(loss.detach()).all():
@@ -179,7 +184,7 @@ class Trainer:
         moved = {k: v.to(self.device, non_blocking=True) if isinstance(v, torch.Tensor) else v
                  for k, v in batch.items()}
         out = task.on_after_batch_transfer(moved)
-        if self.cfg.channels_last:
+        if self.channels_last:
             out = {k: v.contiguous(memory_format=torch.channels_last)
                    if isinstance(v, torch.Tensor) and v.ndim == 4 and v.is_floating_point() else v
                    for k, v in out.items()}
@@ -228,7 +233,7 @@ class Trainer:
         """Train `task`; return the metrics of the best validation (or of the last epoch without validation)."""
         self.environment = record_environment(self.run_dir)
         task.to(self.device)
-        if self.cfg.channels_last:
+        if self.channels_last:
             task.to(memory_format=torch.channels_last)
         optimizers, schedulers = task.configure_optimizers()
         if resume:
@@ -240,8 +245,8 @@ class Trainer:
             model = torch.nn.parallel.DistributedDataParallel(
                 task, device_ids=[self.device.index] if self.device.type == "cuda" else None,
                 broadcast_buffers=False)
-        if self.cfg.compile:
-            model = torch.compile(model)
+        self.model = self._compiled(model, task) if self.compile else model
+        self._eager_model, self._compile_unproven = model, self.compile
         train_loader = task.train_dataloader(train_set, batch_size, self.engine)
         val_loader = task.val_dataloaders(val_set, val_batch_size or batch_size, self.engine) if val_set else None
         monitor = self.monitor(task)
@@ -250,39 +255,84 @@ class Trainer:
             self.logger.log({"monitor": monitor, "monitor_mode": self.cfg.monitor_mode}, self.global_step, prefix="run/")
 
         last_val: dict[str, float] = {}
-        for epoch in range(self.epoch, self.cfg.max_epochs):
-            self.epoch = epoch
-            task.on_train_epoch_start(self.engine)
-            for sampler in (train_loader.sampler, train_loader.batch_sampler):
-                if hasattr(sampler, "set_epoch"):
-                    sampler.set_epoch(epoch)
-            train_logs = self._train_epoch(model, task, train_loader, optimizers)
-            for s in schedulers:
-                s.step()
-            validate = val_loader is not None and (
-                (epoch + 1) % self.cfg.val_every_n_epochs == 0 or epoch + 1 == self.cfg.max_epochs)
-            if validate:
-                last_val = self.validate(task, val_loader)
-                self.logger.log(last_val, self.global_step, prefix="val/")
-                self._print_metrics(epoch, last_val)
-            if validate and monitor not in last_val:
-                raise KeyError(f"trainer.monitor={monitor!r} is not among the validation metrics {list(last_val)}")
-            improved = validate and self.sign * last_val[monitor] > self.best_metric
-            if improved:
-                self.best_metric = self.sign * last_val[monitor]
-                self.best = {**last_val, "epoch": epoch}
-            self.logger.log({**train_logs, "epoch": epoch}, self.global_step, prefix="train/epoch_")
-            if dist.is_main():
-                state = self._state(task, optimizers, schedulers)
-                ckpt_io.save_atomic(state, self.run_dir / "last.pt")
-                if improved or (val_loader is None and epoch + 1 == self.cfg.max_epochs):
-                    ckpt_io.save_atomic(state, self.run_dir / "best.pt")
-            dist.barrier()
+        try:
+            for epoch in range(self.epoch, self.cfg.max_epochs):
+                self.epoch = epoch
+                task.on_train_epoch_start(self.engine)
+                for sampler in (train_loader.sampler, train_loader.batch_sampler):
+                    if hasattr(sampler, "set_epoch"):
+                        sampler.set_epoch(epoch)
+                train_logs = self._train_epoch(task, train_loader, optimizers)
+                for s in schedulers:
+                    s.step()
+                validate = val_loader is not None and (
+                    (epoch + 1) % self.cfg.val_every_n_epochs == 0 or epoch + 1 == self.cfg.max_epochs)
+                if validate:
+                    last_val = self.validate(task, val_loader)
+                    self.logger.log(last_val, self.global_step, prefix="val/")
+                    self._print_metrics(epoch, last_val)
+                if validate and monitor not in last_val:
+                    raise KeyError(f"trainer.monitor={monitor!r} is not among the validation metrics {list(last_val)}")
+                improved = validate and self.sign * last_val[monitor] > self.best_metric
+                if improved:
+                    self.best_metric = self.sign * last_val[monitor]
+                    self.best = {**last_val, "epoch": epoch}
+                self.logger.log({**train_logs, "epoch": epoch}, self.global_step, prefix="train/epoch_")
+                if dist.is_main():  # serialised once, while the next epoch trains; best.pt links to last.pt
+                    best_due = improved or (val_loader is None and epoch + 1 == self.cfg.max_epochs)
+                    self.writer.submit(self._state(task, optimizers, schedulers), self.run_dir / "last.pt",
+                                       also=(self.run_dir / "best.pt",) if best_due else ())
+                dist.barrier()
+        finally:
+            self.writer.join()  # the last epoch's checkpoint is on disk before fit returns or raises
         self.logger.close()
         return self.best or last_val
 
-    def _train_epoch(self, model, task: Task, loader: DataLoader, optimizers) -> dict[str, float]:
-        model.train()
+    def _compiled(self, model: torch.nn.Module, task: Task) -> torch.nn.Module:
+        """torch.compile of what the step calls: the task (or its DDP wrapper); a task that steps its own optimizers
+        (automatic_optimization=False) has its networks compiled in place instead, since its step runs backward
+        and the optimizers' steps, which a compiled graph would break around."""
+        if task.automatic_optimization:
+            return torch.compile(model)
+        for network in task.children():
+            network.compile()
+        return model
+
+    def _eager(self, task: Task, err: Exception) -> None:
+        """The first compiled step failed: go on eagerly, with one line saying why."""
+        first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
+        tqdm.write(f"trainer.compile: torch.compile failed on the first step ({type(err).__name__}: {first[:200]}); "
+                   "training goes on eagerly. Set trainer.compile=false to skip the attempt.")
+        for network in task.children():
+            network._compiled_call_impl = None  # undo Module.compile() (the in-place compile of _compiled)
+        self.model, self._compile_unproven = self._eager_model, False
+
+    def _step(self, task: Task, batch: dict, optimizers, i: int, n_batches: int) -> dict:
+        """One training step of the model; the first compiled one falls back to eager if compiling fails."""
+        if not self._compile_unproven:
+            return self._run_step(task, batch, optimizers, i, n_batches)
+        try:
+            out = self._run_step(task, batch, optimizers, i, n_batches)
+        except Exception as err:  # noqa: BLE001 - any failure of a compiled first step is retried eagerly
+            self._eager(task, err)
+            for optimizer in optimizers:
+                optimizer.zero_grad(set_to_none=True)
+            out = self._run_step(task, batch, optimizers, i, n_batches)  # an eager failure is the real error
+        self._compile_unproven = False
+        return out
+
+    def _run_step(self, task: Task, batch: dict, optimizers, i: int, n_batches: int) -> dict:
+        if not task.automatic_optimization:
+            return self.model(batch, self.engine)
+        with self.autocast():
+            out = self.model(batch, self.engine)
+        self.engine.backward(out["loss"] / self.cfg.accumulate)
+        if (i + 1) % self.cfg.accumulate == 0 or i + 1 == n_batches:
+            self.engine.step(optimizers[0])
+        return out
+
+    def _train_epoch(self, task: Task, loader: DataLoader, optimizers) -> dict[str, float]:
+        self.model.train()
         n_batches = len(loader)
         if self.cfg.limit_train_batches:
             n_batches = min(n_batches, self.cfg.limit_train_batches)
@@ -293,16 +343,8 @@ class Trainer:
             if i >= n_batches:
                 break
             batch = self._to_device(batch, task)
-            if task.automatic_optimization:
-                with self.autocast():
-                    out = model(batch, self.engine)
-                loss = out["loss"]
-                self.engine.backward(loss / self.cfg.accumulate)
-                if (i + 1) % self.cfg.accumulate == 0 or i + 1 == n_batches:
-                    self.engine.step(optimizers[0])
-            else:
-                out = model(batch, self.engine)
-                loss = out["loss"]
+            out = self._step(task, batch, optimizers, i, n_batches)
+            loss = out["loss"]
             task.on_train_batch_end(out)
             self.global_step += 1
             total += float(loss.detach())

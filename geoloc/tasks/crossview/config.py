@@ -107,6 +107,7 @@ class CrossViewEvaluation:
     job: EvaluateKeys  # ckpt, metrics_out, device, num_workers, progress
     gallery: GalleryConfig
     run_dir: str | None = None
+    precision: str = "32"  # the run's trainer.precision: its autocast applies on CUDA, as in training's validation
 
     @property
     def batch_size(self) -> int:
@@ -159,7 +160,8 @@ def parse_evaluation(cfg: DictConfig, stored: DictConfig) -> CrossViewEvaluation
     gallery = checked(cfg.get("gallery") or {}, GalleryConfig, "gallery")
     return CrossViewEvaluation(data=data, reader=reader, model=model, components=components,
                                job=top_level(cfg, EvaluateKeys, "evaluate.py"), gallery=gallery,
-                               run_dir=OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False))
+                               run_dir=OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False),
+                               precision=str(OmegaConf.select(stored, "trainer.precision", default="32")))
 
 
 def evaluated_dataset(stored: DictConfig | dict, requested: DictConfig | dict | None) -> dict:

@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.engine.device import resolve_device
+from geoloc.engine.device import autocast, resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
 from geoloc.tasks.crossview.refine import matcher, offset_m
@@ -50,6 +50,8 @@ class CrossViewEncoder:
         self.config, (self.data, self._reader) = config, parse_dataset(config.dataset)
         self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
         self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
+        # the run's trainer.precision: its autocast applies on CUDA (as in training's validation), not on the CPU
+        self.precision = str(OmegaConf.select(config, "trainer.precision", default="32"))
 
     @classmethod
     def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":
@@ -147,12 +149,14 @@ class CrossViewEncoder:
     @torch.no_grad()
     def encode_street(self, inputs: torch.Tensor) -> torch.Tensor:
         """B×3×H×W query-branch inputs -> B×dim float32 descriptors on the encoder's device."""
-        return self.model.query(inputs.to(self.device)).float()
+        with autocast(self.precision, self.device):
+            return self.model.query(inputs.to(self.device)).float()
 
     @torch.no_grad()
     def encode_aerial(self, inputs: torch.Tensor) -> torch.Tensor:
         """B×3×H×W reference-branch inputs -> B×dim float32 descriptors on the encoder's device."""
-        return self.model.reference(inputs.to(self.device)).float()
+        with autocast(self.precision, self.device):
+            return self.model.reference(inputs.to(self.device)).float()
 
     # ---- refinement inside a tile ------------------------------------------------------------------------------
     def refine_query(self, image: np.ndarray, heading: float, view: str | None = None) -> torch.Tensor:

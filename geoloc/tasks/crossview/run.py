@@ -94,8 +94,8 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
     if eval_data is None:
         eval_data = build_eval(run.data, run.reader, run.data.split, refine=run.components.refine)
     task.validate_on(eval_data.split)
-    trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress),
-                      run_dir=run.run_dir or ".")
+    trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress,
+                                    precision=run.precision), run_dir=run.run_dir or ".")
     task.to(trainer.device)
     if run.gallery.save or run.gallery.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
         if run.data.random_heading:

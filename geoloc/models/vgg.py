@@ -44,16 +44,33 @@ def imagenet_weights_path(weights_path: str | None = None, filename: str = IMAGE
 
 def load_imagenet_features(features: nn.Sequential, weights_path: str | None = None,
                            filename: str = IMAGENET_FILE) -> None:
-    """Copy the conv weights of a torchvision VGG16 state dict into `features` (the classifier is unused)."""
+    """Copy the conv weights of a torchvision VGG16 state dict into `features` (the classifier is unused). A file
+    that cannot be read, holds another network, or holds only part of VGG16 (a copy cut short, a trunk saved
+    without its last blocks) is refused naming the file and what is wrong, before any weight is copied."""
     path = imagenet_weights_path(weights_path, filename)
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    refetch = (f"Fetch torchvision's {filename} again on a connected machine and point backbone.weights_path at it, "
+               "or train from scratch with backbone.pretrained=false.")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # truncated or not a tensor file: torch's own message runs to a page
+        first = next((line for line in str(err).splitlines() if line.strip()), "")
+        raise ValueError(f"cannot read {path} as a state dict ({type(err).__name__}: {first}). {refetch}") from err
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} holds a {type(state).__name__}, not a state dict. {refetch}")
     conv = {k[len("features."):]: v for k, v in state.items() if k.startswith("features.")}
     if not conv:
-        raise ValueError(f"{path} holds no 'features.*' keys; it is not a torchvision VGG16 state dict.")
-    missing, unexpected = features.load_state_dict(conv, strict=False)
-    if missing or unexpected:
-        raise ValueError(f"{path} does not fit this VGG16 trunk (missing {missing[:3]}, unexpected "
-                         f"{unexpected[:3]}). ImageNet weights need backbone.width=1.0.")
+        raise ValueError(f"{path} holds no 'features.*' keys; it is not a torchvision VGG16 state dict. {refetch}")
+    own = features.state_dict()
+    missing = [f"features.{k}" for k in own if k not in conv]
+    shapes = [f"features.{k}: file {tuple(conv[k].shape)} vs VGG16 {tuple(v.shape)}"
+              for k, v in own.items() if k in conv and conv[k].shape != v.shape]
+    if missing or shapes:
+        found = f"{len(own) - len(missing)} of the {len(own)} tensors of the VGG16 trunk"
+        raise ValueError(f"{path} holds {found}: it is partial or another network "
+                         f"({'missing ' + ', '.join(missing[:3]) if missing else ''}"
+                         f"{'; ' if missing and shapes else ''}{'mis-shaped ' + '; '.join(shapes[:2]) if shapes else ''}"
+                         f"). {refetch}")
+    features.load_state_dict({k: conv[k] for k in own})
 
 
 class VGG16Trunk(nn.Module):

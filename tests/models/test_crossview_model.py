@@ -210,6 +210,39 @@ def test_hub_cache_is_used_when_present(tmp_path, monkeypatch):
     VGG16Trunk(width=1.0, pretrained=True)
 
 
+def _vgg16_file(tmp_path, keep=None, reshape=None, name="vgg16-part.pth"):
+    """torchvision's VGG16 state dict, with only the keys `keep` accepts, and `reshape` keys cut in half."""
+    state = vgg16(weights=None).state_dict()
+    state = {k: (v[: v.shape[0] // 2] if reshape and reshape(k) else v) for k, v in state.items()
+             if keep is None or keep(k)}
+    torch.save(state, tmp_path / name)
+    return str(tmp_path / name)
+
+
+def test_a_partial_vgg16_file_is_refused_naming_what_it_lacks(tmp_path):
+    # the first 10 convolutions (features.0 .. features.21) only: conv5_x is missing
+    path = _vgg16_file(tmp_path, keep=lambda k: k.startswith("features.") and int(k.split(".")[1]) < 22)
+    with pytest.raises(ValueError, match=r"holds 20 of the 26 tensors of the VGG16 trunk.*missing features\.24\.weight"
+                       r".*backbone\.weights_path") as err:
+        VGG16Trunk(width=1.0, pretrained=True, weights_path=path)
+    assert path in str(err.value)
+
+
+def test_a_vgg16_file_of_other_shapes_is_refused(tmp_path):
+    path = _vgg16_file(tmp_path, reshape=lambda k: k == "features.28.weight")
+    with pytest.raises(ValueError, match=r"mis-shaped features\.28\.weight: file \(256, 512, 3, 3\) vs VGG16 "
+                       r"\(512, 512, 3, 3\)"):
+        VGG16Trunk(width=1.0, pretrained=True, weights_path=path)
+
+
+def test_a_vgg16_file_cut_short_is_refused_as_unreadable(tmp_path):
+    path = tmp_path / "vgg16-cut.pth"
+    torch.save(vgg16(weights=None).features[:5].state_dict(), path)
+    path.write_bytes(path.read_bytes()[:4000])  # a copy that stopped part way
+    with pytest.raises(ValueError, match=f"cannot read {path} as a state dict"):
+        VGG16Trunk(width=1.0, pretrained=True, weights_path=str(path))
+
+
 def test_pretrained_needs_full_width():
     with pytest.raises(ValueError, match="width=1.0"):
         VGG16Trunk(width=0.5, pretrained=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import re
 
 import torch
 
@@ -15,6 +16,13 @@ def valid_devices() -> list[str]:
     if torch.cuda.is_available():
         names += ["cuda", *(f"cuda:{i}" for i in range(torch.cuda.device_count()))]
     return names
+
+
+def check_device_name(name: str, key: str) -> None:
+    """A ValueError unless `name` is a device name geoloc takes anywhere: auto, cpu, cuda or cuda:N (whether this
+    machine has it is resolve_device's question, asked when the run starts)."""
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", str(name).strip()):
+        raise ValueError(f"{key} must be auto, cpu, cuda or cuda:N, got {name!r}")
 
 
 def resolve_device(device: str | None = None) -> torch.device:

@@ -28,11 +28,19 @@ def _env_int(*names: str, default: int) -> int:
 def init_from_env(device: str = "auto") -> torch.device:
     """Join the process group when launched by torchrun or SLURM, and return this rank's device.
 
-    `device` is "auto", "cpu" or "cuda". On CPU the backend is gloo, on CUDA nccl.
+    `device` is "auto", "cpu", "cuda" or "cuda:N" (one process only: under torchrun or SLURM each rank takes
+    cuda:LOCAL_RANK). On CPU the backend is gloo, on CUDA nccl.
     """
-    use_cuda = resolve_device(device).type == "cuda"
+    chosen = resolve_device(device)
+    use_cuda = chosen.type == "cuda"
     world_size = _env_int("WORLD_SIZE", "SLURM_NTASKS", default=1)
     local_rank = _env_int("LOCAL_RANK", "SLURM_LOCALID", default=0)
+    if use_cuda and chosen.index is not None and world_size > 1:
+        raise ValueError(f"trainer.device={device} names one GPU, but this is a launch of {world_size} processes, "
+                         "each of which takes the GPU of its local rank: set trainer.device=cuda")
+    if use_cuda and chosen.index is not None:
+        torch.cuda.set_device(chosen)
+        return chosen
     if world_size > 1 and not dist.is_initialized():
         slurm_master_env()
         os.environ.setdefault("RANK", str(_env_int("RANK", "SLURM_PROCID", default=0)))

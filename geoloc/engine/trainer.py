@@ -23,7 +23,7 @@ from tqdm import tqdm
 import geoloc
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.engine.device import AUTO, amp_dtype, autocast, on_for_cuda
+from geoloc.engine.device import AUTO, amp_dtype, autocast, check_device_name, on_for_cuda
 from geoloc.engine.env import record_environment
 from geoloc.engine.logging import RunLogger
 from geoloc.engine.sampling import EpochSampler
@@ -40,7 +40,7 @@ class TrainerConfig:
     num_workers: int = 4
     pin_memory: bool = True
     persistent_workers: bool = True
-    device: str = "auto"  # "auto" | "cpu" | "cuda"
+    device: str = "auto"  # "auto" | "cpu" | "cuda" | "cuda:N" (one rule with the apps: engine/device.py)
     seed: int = 0
     log_every_n_steps: int = 10
     limit_train_batches: int = 0  # 0 = all
@@ -61,8 +61,7 @@ class TrainerConfig:
             raise ValueError(f"trainer.precision must be one of '32', 'bf16', '16', got {self.precision!r}")
         if self.accumulate < 1:
             raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"trainer.device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
+        check_device_name(self.device, "trainer.device")
         for key in ("channels_last", "compile"):
             if getattr(self, key) not in (True, False, AUTO):
                 raise ValueError(f"trainer.{key} must be true, false or auto, got {getattr(self, key)!r}")

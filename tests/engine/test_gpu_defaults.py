@@ -178,3 +178,24 @@ def test_the_write_holds_the_state_of_when_it_was_submitted(tmp_path, monkeypatc
     assert writer._thread is not None and writer._thread.is_alive()  # it is written in the background
     writer.join()
     assert torch.equal(ckpt_io.load(tmp_path / "best.pt")["task"]["w"], torch.zeros(4))
+
+
+@pytest.mark.parametrize("name", ["auto", "cpu", "cuda", "cuda:1"])
+def test_the_trainer_takes_every_device_name_the_apps_take(name):
+    assert checked({"device": name}, TrainerConfig, "trainer").device == name  # availability: when the run starts
+
+
+@pytest.mark.parametrize("name", ["gpu", "mps", "cuda:x", "cuda1"])
+def test_a_device_name_no_door_takes_is_refused_by_both(name):
+    from geoloc.engine.device import resolve_device
+
+    with pytest.raises(ConfigError, match="trainer.device must be auto, cpu, cuda or cuda:N"):
+        checked({"device": name}, TrainerConfig, "trainer")
+    with pytest.raises(ValueError):
+        resolve_device(name)
+
+
+def test_a_gpu_this_machine_lacks_is_refused_when_the_run_starts(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="CUDA is not available on this machine"):
+        Trainer(config(device="cuda:1"), "unused")

@@ -30,6 +30,8 @@ SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
     "robustness": ("geoloc.apps.robustness", "one table of a checkpoint at each FoV, heading known / unknown, with "
                    "distractors and on another dataset", None),
     "gallery": ("geoloc.apps.gallery.command", "merge SHARD_DIR... out=DIR: one gallery from shard jobs", "faiss"),
+    "list": ("geoloc.apps.components.listing", "every registered component (dataset, backbone, loss...) and its "
+             "config keys", None),
 }
 
 

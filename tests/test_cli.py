@@ -37,3 +37,22 @@ def test_a_subcommand_is_its_entry_point(tmp_path):
 
 def test_an_unknown_subcommand_is_refused_with_the_list():
     assert cli.main(["trian"]) == 2
+
+
+def test_list_prints_every_kind_with_its_names_and_keys(capsys):
+    from geoloc import registry
+
+    assert cli.main(["list"]) == 0
+    out = capsys.readouterr().out
+    for kind in registry.kinds():  # every declared kind, and each of its names
+        assert f"\n{kind}  (" in f"\n{out}"
+        for name in registry.names(kind):
+            assert f"  {name} " in out, (kind, name)
+    assert "gms_triplet       geoloc.losses.gms_triplet_loss.GMSTripletLoss\n" in out
+    assert "alpha=10.0  queue_size=1024  queue_start_epoch=0" in out  # the factory's keys and defaults
+    assert "(loss.name=NAME; geoloc passes dim)" in out  # run-time arguments are not config keys
+
+
+def test_list_refuses_a_kind_that_does_not_exist(capsys):
+    assert cli.main(["list", "losses"]) == 2
+    assert "unknown kind(s) ['losses']" in capsys.readouterr().err

@@ -44,6 +44,8 @@ class AnyViewInfoNCE(InfoNCELoss):
     """The module docstring's L, with InfoNCELoss's temperature (fixed or learned) and label smoothing (on the
     InfoNCE terms)."""
 
+    needs = ("query_views",)  # the task passes the extra views' descriptors (B×V×D) as `query_views`
+
     def __init__(self, temperature: float = 0.07, learn_temperature: bool = True, label_smoothing: float = 0.1,
                  full_weight: float = 1.0, consistency_weight: float = 1.0):
         super().__init__(temperature, learn_temperature, label_smoothing)

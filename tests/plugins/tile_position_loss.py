@@ -1,5 +1,6 @@
 """A loss plug-in that asks for more of the batch than (query, reference, labels): the batch itself and the
-reference branch's maps, by naming them (as a metric-localisation loss would, to read each pair's tile position)."""
+reference branch's maps, by declaring them in `needs` (as a metric-localisation loss would, to read each pair's tile
+position)."""
 
 from geoloc.losses.triplet import soft_margin_triplet
 from geoloc.registry import register
@@ -7,6 +8,8 @@ from torch import nn
 
 
 class TilePositionLoss(nn.Module):
+    needs = ("batch", "reference_features")  # passed as keywords beside (query, reference, labels)
+
     def __init__(self):
         super().__init__()
         self.seen = []

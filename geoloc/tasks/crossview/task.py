@@ -10,6 +10,8 @@ head=gap loss=infonce optim=adamw with a hard-sample sampler (conf/experiment/sa
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from omegaconf import DictConfig
 
@@ -31,10 +33,29 @@ from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 from geoloc.models.refiners import check_refiner
 from geoloc.tasks.crossview.refine import RefineConfig, fine_metrics
 
-# What a loss may ask for beyond (query, reference, labels), by naming it in its signature (registry.accepted):
-# the batch as the data module gives it and each branch's BranchFeatures (models/crossview.py). They are this
-# rank's, where the descriptors are gathered over ranks.
+# What a loss may ask for beyond (query, reference, labels), by declaring it in its `needs` attribute: the batch as
+# the data module gives it, each branch's BranchFeatures (models/crossview.py) and the extra query views' B×V×D
+# descriptors. They are this rank's, where the descriptors are gathered over ranks.
 LOSS_EXTRAS = ("batch", "query_features", "reference_features", "query_views")
+
+
+def loss_needs(loss) -> tuple[str, ...]:
+    """What `loss` declares it needs beyond (query, reference, labels): its `needs` attribute, each a LOSS_EXTRAS
+    name, passed as keywords. A loss from before the attribute that names them in its signature gets them too,
+    with a DeprecationWarning (read off the signature for one release)."""
+    needs = getattr(loss, "needs", None)
+    if needs is None:
+        named = tuple(registry.accepted(getattr(loss, "forward", loss), dict.fromkeys(LOSS_EXTRAS)))
+        if named:
+            warnings.warn(f"loss {type(loss).__name__} asks for {list(named)} by naming them in its signature; "
+                          f"declare them instead: `needs = {named!r}` (docs/extending.md)", DeprecationWarning,
+                          stacklevel=2)
+        return named
+    unknown = [n for n in needs if n not in LOSS_EXTRAS]
+    if isinstance(needs, str) or unknown:
+        raise ConfigError(f"loss {type(loss).__name__} declares needs={needs!r}: a tuple of names among "
+                          f"{list(LOSS_EXTRAS)}")
+    return tuple(needs)
 
 
 class CrossViewTask(Task):
@@ -52,8 +73,7 @@ class CrossViewTask(Task):
         self.loss = registry.build("loss", loss, dim=model.dim)
         if not callable(self.loss):
             raise TypeError(f"loss {loss.get('name')!r} did not build a callable (docs/extending.md)")
-        self.loss_extras = tuple(registry.accepted(getattr(self.loss, "forward", self.loss),
-                                                   dict.fromkeys(LOSS_EXTRAS)))
+        self.loss_extras = loss_needs(self.loss)
         # what is built later fails here, before any data is read: an unknown name or argument
         registry.check("optimizer", optim)
         registry.check("sampler", self.sampler_section)
@@ -85,7 +105,7 @@ class CrossViewTask(Task):
     def train_dataloader(self, dataset, batch_size, engine):
         if getattr(dataset, "views", None) is not None and "query_views" not in self.loss_extras:
             raise ConfigError("the training pairs carry extra query views (views.name is not 'single'), but loss "
-                              f"{type(self.loss).__name__} does not take them (no `query_views` argument); use "
+                              f"{type(self.loss).__name__} does not take them (`query_views` is not in its `needs`); use "
                               "loss=any_view_infonce or views=single")
         self.query_views["train"] = dataset.split.query_view
         if self.sampler_section.get("name") == "shuffle":  # the engine's own seeded shuffle

@@ -33,15 +33,10 @@ from torch.utils.data import Dataset, default_collate
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from geoloc.config import checked  # noqa: E402
 from geoloc.launch.hydra_hooks import compose_conf  # noqa: E402
-from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
 from geoloc.eval.retrieval_metrics import retrieval_metrics  # noqa: E402
 from geoloc.eval.scoring import QUERY_CHUNK  # noqa: E402
-from geoloc.tasks.crossview.config import parse_training  # noqa: E402
-from geoloc.tasks.crossview.data_config import parse_dataset  # noqa: E402
-from geoloc.tasks.crossview.datasets import build  # noqa: E402
-from geoloc.tasks.crossview.run import build_task  # noqa: E402
+from geoloc.tasks.crossview import build_run  # noqa: E402
 from geoloc.tasks.crossview.transforms import normalised  # noqa: E402
 
 
@@ -69,20 +64,15 @@ def train_config(args, run_dir: Path):
 
 
 def geoloc_fit(cfg, items, run_dir: Path) -> float:
-    seed_everything(0)
-    run = parse_training(cfg)
-    task = build_task(run.model, run.components, run.trainer.max_epochs)
-    trainer = Trainer(checked(cfg.trainer, TrainerConfig, "trainer"), run_dir)
+    run = build_run(cfg, run_dir)  # seeded, as train.py builds it
     t0 = time.perf_counter()
-    trainer.fit(task, items, None, cfg.dataset.batch_size)
+    run.trainer.fit(run.task, items, None, cfg.dataset.batch_size)
     return time.perf_counter() - t0
 
 
 def bare_fit(cfg, items, run_dir: Path) -> float:
     """The same model, loss and optimiser in a plain loop: what a researcher would write without a framework."""
-    seed_everything(0)
-    run = parse_training(cfg)
-    task = build_task(run.model, run.components, run.trainer.max_epochs)
+    task = build_run(cfg, run_dir).task  # the same seed, model, loss and optimiser as geoloc_fit's
     (optimizer,), schedulers = task.configure_optimizers()
     model, loss_fn, batch_size = task.model, task.loss, cfg.dataset.batch_size
     generator = torch.Generator().manual_seed(0)
@@ -110,8 +100,7 @@ def bare_fit(cfg, items, run_dir: Path) -> float:
 def run_train(args) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="geoloc_bench_overhead_"))
     cfg = train_config(args, tmp / "config")
-    data = parse_dataset(cfg.dataset)
-    pairs = build(*data, "train", train=True)
+    pairs = build_run(cfg, tmp / "config").train_set
     items = HeldItems(pairs, min(args.pairs or len(pairs), len(pairs)))
     steps = len(items) // cfg.dataset.batch_size * args.epochs
     print(f"train: the default recipe, {len(items)} pairs held in memory, batch {cfg.dataset.batch_size}, "

@@ -40,14 +40,10 @@ from torch.utils.data import default_collate
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from geoloc.config import checked  # noqa: E402
 from geoloc.launch.hydra_hooks import compose_conf  # noqa: E402
-from geoloc.tasks.crossview.config import parse_training  # noqa: E402
-from geoloc.tasks.crossview.data_config import parse_dataset  # noqa: E402
-from geoloc.tasks.crossview.datasets import build  # noqa: E402
-from geoloc.engine import Trainer, TrainerConfig, seed_everything  # noqa: E402
+from geoloc.engine import Trainer  # noqa: E402
 from geoloc.engine import checkpoint as ckpt_io  # noqa: E402
-from geoloc.tasks.crossview.run import build_task  # noqa: E402
+from geoloc.tasks.crossview import build_run  # noqa: E402
 
 
 def dataset_root(args) -> Path:
@@ -73,9 +69,7 @@ def config(args, root: Path, run_dir: Path):
 
 
 def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
-    seed_everything(0)
-    run = parse_training(cfg)
-    task = build_task(run.model, run.components, run.trainer.max_epochs).to(trainer.device)
+    task = build_run(cfg, "/tmp/geoloc_bench/run").task.to(trainer.device)
     if args.channels_last:
         task.to(memory_format=torch.channels_last)
     optimizer = task.configure_optimizers()[0][0]
@@ -202,14 +196,12 @@ class TimedLoader:
             yield batch
 
 
-def bench_fit(cfg, trainer_cfg: TrainerConfig, train_set, args, step_s: float | None) -> dict:
-    seed_everything(0)
-    run = parse_training(cfg)
-    task = build_task(run.model, run.components, run.trainer.max_epochs)
+def bench_fit(cfg, train_set, args, step_s: float | None) -> dict:
+    run_dir = Path(tempfile.mkdtemp(prefix="geoloc_bench_fit_"))
+    run = build_run(cfg, run_dir)
+    task, trainer = run.task, run.trainer
     items = [train_set[(i % len(train_set), 0)] for i in range(min(len(train_set), args.fit_pairs))]
     pairs = Repeated(train_set, items, args.fit_pairs)
-    run_dir = Path(tempfile.mkdtemp(prefix="geoloc_bench_fit_"))
-    trainer = Trainer(trainer_cfg, run_dir)
     writer = {"background": ckpt_io.CheckpointWriter, "sync-twice": SerialisedTwice, "none": NoWrites}[args.writer]()
     trainer.writer = EveryEpochBest(writer, run_dir)
     steps = len(pairs) // args.batch
@@ -274,9 +266,8 @@ def main(argv=None) -> dict:
     root = dataset_root(args) if args.recipe == "paper" else "the default recipe's embedded world"
     cfg = config(args, root, Path("/tmp/geoloc_bench/run"))
     cfg.trainer.max_epochs = args.fit_epochs
-    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
-    trainer = Trainer(trainer_cfg, "/tmp/geoloc_bench/run")
-    train_set = build(*parse_dataset(cfg.dataset), "train", train=True)
+    run = build_run(cfg, "/tmp/geoloc_bench/run")  # as train.py builds it: task, trainer, data
+    trainer, train_set = run.trainer, run.train_set
     print(f"device {trainer.device}, precision {args.precision}, channels_last {args.channels_last}, compile "
           f"{args.compile}, batch {args.batch}, workers {args.workers}, torch threads {torch.get_num_threads()}, "
           f"data {root} ({len(train_set)} pairs)", flush=True)
@@ -290,7 +281,7 @@ def main(argv=None) -> dict:
         print(f"step: {result['step_s']:.2f} s = {result['step_pairs_s']:.2f} pairs/s (query "
               f"{result['query_shape']}, reference {result['reference_shape']}){mem}")
     if args.fit:
-        result.update(bench_fit(cfg, trainer_cfg, train_set, args, result.get("step_s")))
+        result.update(bench_fit(cfg, train_set, args, result.get("step_s")))
         ratio = f", fit / step = {result['fit_pairs_s'] / result['step_pairs_s']:.3f}" if "step_pairs_s" in result else ""
         idle = (f", idle {result['idle_between_epochs_s']:.2f} s beyond one step" if "idle_between_epochs_s" in result
                 else "")

@@ -1,6 +1,8 @@
 """Cross-view geo-localization: street (or drone) queries against aerial references. See docs/architecture.md.
 
-`train(cfg, run_dir)` trains and validates; `evaluate(cfg, state)` scores a checkpoint's state on a split.
+`train(cfg, run_dir)` trains and validates; `evaluate(cfg, state)` scores a checkpoint's state on a split;
+`build_run(cfg, run_dir)` gives what train.py builds before its first epoch (task, trainer, data: a `Run`), for
+benchmarks and tools.
 RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc/launch/resume.py). The apps
 (localize.py, `geoloc serve`, export.py) use what this package exports and nothing deeper: `CrossViewEncoder` (a
 checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and a saved gallery,
@@ -19,10 +21,10 @@ from geoloc.tasks.crossview.gallery_folder import SavedGallery, open_gallery
 from geoloc.tasks.crossview.gallery_shards import merge_shards
 from geoloc.tasks.crossview.localization import LocalizationResult
 from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
-from geoloc.tasks.crossview.run import evaluate, sweep_metric, train
+from geoloc.tasks.crossview.run import Run, build_run, evaluate, sweep_metric, train
 
 registry.register("task", "crossview", sys.modules[__name__])
 
-__all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "SavedGallery",
-           "TOP1", "WITHIN_5M", "calibrators", "canonical_config", "config_nodes", "evaluate", "merge_shards",
+__all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "Run",
+           "SavedGallery", "TOP1", "WITHIN_5M", "build_run", "calibrators", "canonical_config", "config_nodes", "evaluate", "merge_shards",
            "open_gallery", "read_places", "refine_features", "refiner_calibrator", "sweep_metric", "train"]

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Dataset
 
 from geoloc.config import ConfigError, checked
 from geoloc.data.retrieval_split import TILE_LABELS
@@ -35,12 +37,31 @@ def build_task(model: CrossViewModelConfig, components: Components, max_epochs: 
                          refine=components.refine)
 
 
-def train(cfg: DictConfig, run_dir: Path) -> dict:
-    """train.py's work: parse the config once, then train (`fit`)."""
-    return fit(parse_training(cfg), Path(run_dir))
+@dataclass
+class Run:
+    """A training run as train.py builds it, before any epoch: what benchmarks and tools take instead of rebuilding
+    it from the parts. `fit()` trains it as train.py does (without the final table and figures)."""
+
+    config: CrossViewTraining
+    task: CrossViewTask
+    trainer: Trainer
+    train_set: Dataset
+    val_set: Dataset
+
+    def fit(self, train_set: Dataset | None = None, val_set: Dataset | None = None) -> dict:
+        """Trainer.fit over the run's data, or over `train_set` / `val_set` where given (a benchmark's held items)."""
+        data = self.config.data
+        return self.trainer.fit(self.task, self.train_set if train_set is None else train_set,
+                                self.val_set if val_set is None else val_set, batch_size=data.batch_size,
+                                val_batch_size=data.val_batch_size or None, resume=self.config.job.ckpt)
 
 
-def fit(run: CrossViewTraining, run_dir: Path) -> dict:
+def build_run(cfg: DictConfig | CrossViewTraining, run_dir: str | Path) -> Run:
+    """The run `cfg` (train.py's composed config, or its parsed CrossViewTraining) describes: seeded, the task
+    built (and its init_from= weights loaded), the data read and checked, then the trainer. Nothing is written
+    to `run_dir` until the data is there, so a failed start leaves no run dir."""
+    run = parse_training(cfg) if isinstance(cfg, DictConfig) else cfg
+    run_dir = Path(run_dir)
     seed_everything(run.trainer.seed)
     task = build_task(run.model, run.components, run.trainer.max_epochs)
     source = None
@@ -53,11 +74,21 @@ def fit(run: CrossViewTraining, run_dir: Path) -> dict:
     check_monitor(run.monitor, validation_plan(run.data, run.refine, val_set.split), f"on {val_set.split.name}")
     task.validate_on(val_set.split)
     trainer = Trainer(run.trainer, run_dir, run.yaml)
-    if source and dist.is_main():  # written once the data is there: a failed start leaves no run dir
+    if source and dist.is_main():  # written once the data is there
         ckpt_io.write_source(run_dir, source)
     trainer.init_from = source
-    best = trainer.fit(task, train_set, val_set, batch_size=run.data.batch_size,
-                       val_batch_size=run.data.val_batch_size or None, resume=run.job.ckpt)
+    return Run(run, task, trainer, train_set, val_set)
+
+
+def train(cfg: DictConfig, run_dir: Path) -> dict:
+    """train.py's work: parse the config once, then train (`fit`)."""
+    return fit(parse_training(cfg), Path(run_dir))
+
+
+def fit(run: CrossViewTraining, run_dir: Path) -> dict:
+    built = build_run(run, run_dir)
+    best = built.fit()
+    task, trainer, val_set = built.task, built.trainer, built.val_set
     if dist.is_main():
         print_table(best, f"best validation (epoch {best.get('epoch')}), {len(val_set)} queries, {val_set.split.name}")
         print(f"checkpoints: {run_dir / 'best.pt'}  {run_dir / 'last.pt'}")

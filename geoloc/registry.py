@@ -3,7 +3,7 @@
     @register("loss", "my_loss")
     def my_loss(margin: float = 0.3) -> nn.Module: ...
 
-    # conf/loss/my_loss.yaml (any folder on hydra.searchpath)
+    # my_conf/loss/my_loss.yaml (my_conf: any folder on hydra.searchpath)
     name: my_loss
     module: my_project.losses      # imported before the lookup: a module name or a path to a .py file
     margin: 0.3

@@ -5,9 +5,10 @@ A query's work grows with:
 - the 360° canvas the view is placed on (geoloc/tasks/crossview/views.py): W·360/fov columns by H rows, so a 1°
   photo makes a canvas 360 times its width, and OpenCV's remap (the IPT) takes fewer than 32,767 of either;
 - the candidate headings searched when the heading is unknown (heading_steps), one query-branch pass each.
-Each has a limit (QueryLimits). `check_query` runs on the image's header, before anything is decoded or allocated,
-and again on the decoded image; past a limit, or on a bad setting, QueryError names the key, the value, the limit
-and what to do. `image_size` reads the header.
+Each has a limit (QueryLimits). `check_size` runs on the image's header, before anything is decoded or allocated,
+and again on the decoded image (both through a Localizer's `check`); `check_settings` and `check_headings` check the
+settings. Past a limit, or on a bad setting, QueryError names the key, the value, the limit and what to do.
+`image_size` reads the header.
 """
 
 from __future__ import annotations

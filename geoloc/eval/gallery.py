@@ -174,8 +174,8 @@ class GalleryIndex:
     Args:
         dim: descriptor dimension.
         backend: ``"torch"`` (exact) or ``"faiss"``.
-        kind: ``"flat"`` (exact) or, with FAISS, ``"ivfpq"``, ``"pq_refine"``, ``"ivfpq_refine"``, ``"hnsw"``
-            (module docstring).
+        kind: ``"flat"`` (exact) or, with FAISS, ``"ivfpq"``, ``"pq_refine"``, ``"ivfpq_refine"``, ``"pq_sq8"``,
+            ``"hnsw"`` (module docstring).
         params: the FAISS kinds' knobs (IndexParams); `knobs` given by name replace single ones of them.
         device: torch backend only: where the gallery lives (default: where the first added descriptors are).
         chunk_size: queries per block of the torch search (`geoloc.eval.scoring`).

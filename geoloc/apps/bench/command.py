@@ -101,7 +101,10 @@ def bench(args: list[str]) -> dict:
     cells = tqdm([(run, t) for run in runs for t in sets], desc="bench", disable=not cfg.progress)
     for (name, ckpt), test in cells:
         cells.set_postfix_str(f"{name} on {test.name}")
-        rows += bench_cell(name, ckpt, test, panorama if test.panorama else [PHOTO], roots, dataset, cfg)
+        try:
+            rows += bench_cell(name, ckpt, test, panorama if test.panorama else [PHOTO], roots, dataset, cfg)
+        except ConfigError as refusal:  # evaluate.py refuses this checkpoint on this set: a note, not a stop
+            notes.append(f"{name} on {test.name}: not scored, as evaluate.py refuses it: {refusal}")
     seconds = time.perf_counter() - start
     settings = {"ckpts": [{"name": n, "path": str(p)} for n, p in runs], "sets": list(cfg.sets),
                 "fovs": list(cfg.fovs), "headings": list(cfg.headings), "heading_steps": cfg.heading_steps,

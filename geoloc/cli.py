@@ -29,6 +29,8 @@ SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
     "serve": ("geoloc.apps.serve.command", "answer POST /localize and GET /health over HTTP", "serve"),
     "robustness": ("geoloc.apps.robustness", "one table of a checkpoint at each FoV, heading known / unknown, with "
                    "distractors and on another dataset", None),
+    "bench": ("geoloc.apps.bench.command", "many checkpoints x test sets x FoV / heading protocols in one table, "
+              "beside the published figures", None),
     "gallery": ("geoloc.apps.gallery.command", "merge SHARD_DIR... out=DIR: one gallery from shard jobs", "faiss"),
     "list": ("geoloc.apps.components.listing", "every registered component (dataset, backbone, loss...) and its "
              "config keys", None),

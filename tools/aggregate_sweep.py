@@ -31,6 +31,8 @@ from pathlib import Path
 
 import yaml
 
+from geoloc.launch.sweep_jobs import job_of, run_overrides, shared_overrides
+
 AT = ("last", "best")
 TITLES = {"last": "last epoch", "best": "best epoch ({picked} of each run)"}
 EXTREMES = {"max": "highest", "min": "lowest"}
@@ -125,25 +127,6 @@ def pick(records: list[dict[str, float]], at: str, monitor: str, source: Path | 
     return max(scored, key=lambda r: sign * r[monitor])  # max() returns the first of equal maxima
 
 
-def job_of(run_dir: Path, multirun_dir: Path) -> Path:
-    """The sweep job a metrics folder belongs to: the nearest folder up to the sweep's that Hydra wrote .hydra/
-    into (MMDIP's phase1/ and phase2/ log below their job's folder); the folder itself when none did."""
-    for folder in (run_dir, *run_dir.parents):
-        if (folder / ".hydra").is_dir():
-            return folder
-        if folder == multirun_dir:
-            break
-    return run_dir
-
-
-def run_overrides(job: Path) -> list[str]:
-    """The job's command-line overrides as Hydra saved them; without .hydra/, the folder's name stands for them."""
-    saved = job / ".hydra" / "overrides.yaml"
-    if saved.is_file():
-        return [str(x) for x in yaml.safe_load(saved.read_text()) or []]
-    return [job.name]
-
-
 def planned_epochs(job: Path, run_dir: Path) -> int | None:
     """The epochs the run was asked for (trainer.max_epochs, capped by an MMDIP phase's own), from .hydra."""
     saved = job / ".hydra" / "config.yaml"
@@ -194,7 +177,7 @@ def collect(multirun_dir: Path, at: str = "last", monitor: str | None = None,
 def group(runs) -> dict[str, list[dict[str, float]]]:
     """{override string without seed= and without the overrides all runs share: [validation records]}."""
     keyed = [([o for o in overrides if not o.split("=", 1)[0].lstrip("+~") == "seed"], val) for overrides, val in runs]
-    shared = set.intersection(*(set(o) for o, _ in keyed)) if len(keyed) > 1 else set()
+    shared = shared_overrides([o for o, _ in keyed])
     groups: dict[str, list[dict[str, float]]] = {}
     for overrides, val in keyed:
         name = " ".join(o for o in overrides if o not in shared) or "(base)"

@@ -4,14 +4,13 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import MISSING, OmegaConf
 
+from geoloc.apps.table_files import evaluate_config, refuse_out_that_is_no_folder, refuse_taken, write_whole
 from geoloc.config import ConfigError, checked
 from geoloc.tasks.crossview.robustness import Plan, as_json, evaluate_conditions, markdown
 
@@ -84,56 +83,13 @@ def default_out(ckpt: str) -> Path:
     return path.parent / f"robustness_{path.stem}"
 
 
-def refuse_out_that_is_no_folder(out: Path) -> None:
-    """out= is the folder the tables go in: where it, or a folder above it, is an existing file, refused before
-    anything is evaluated. overwrite=true replaces the tables in a folder, never another file."""
-    for path in (out, *out.parents):
-        if path.is_dir():
-            return
-        if path.exists():
-            raise ConfigError(f"out={out}: {path} is a file, not a folder; robustness writes {TABLE_MD} and "
-                              f"{TABLE_JSON} into the folder out= names (overwrite=true replaces those tables, "
-                              "never another file). Choose another out=")
-
-
-def write_whole(path: Path, text: str, overwrite: bool) -> None:
-    """`text` into `path` through a temp file beside it: whole or not at all; an existing file is kept unless
-    `overwrite`, even one that appeared while the table was computed."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        if overwrite:
-            os.replace(tmp, path)
-        else:
-            try:
-                os.link(tmp, path)
-            except FileExistsError:
-                raise ConfigError(f"{path} appeared while the table was computed; it is kept. Run again with "
-                                  f"another out=, or overwrite=true. The table:\n{text}") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):
-    """evaluate.py's config for `overrides`, composed from conf/evaluate.yaml as `python evaluate.py` composes it."""
-    from geoloc.launch.hydra_hooks import compose_conf
-
-    return compose_conf("evaluate", [f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",
-                                     f"progress={str(progress).lower()}", *overrides])
-
-
 def robustness(args: list[str]) -> dict:
     """Compute and write the table; returns its JSON."""
     own, dataset, cross = split_args(args)
     cfg = checked(OmegaConf.from_dotlist(own), RobustnessConfig, "robustness")
     out = Path(cfg.out) if cfg.out else default_out(cfg.ckpt)
-    refuse_out_that_is_no_folder(out)
-    targets = [out / TABLE_MD, out / TABLE_JSON]
-    taken = [str(p) for p in targets if p.exists()]
-    if taken and not cfg.overwrite:  # before anything is evaluated
-        raise ConfigError(f"{' and '.join(taken)} already exist; choose another out=, or overwrite=true")
+    refuse_out_that_is_no_folder(out, [TABLE_MD, TABLE_JSON], "robustness")
+    refuse_taken([out / TABLE_MD, out / TABLE_JSON], cfg.overwrite)
     if not Path(cfg.ckpt).is_file():
         raise ConfigError(f"ckpt={cfg.ckpt} is not a file: give a checkpoint written by train.py (best.pt)")
     plan = Plan(fovs=list(cfg.fovs), heading_steps=cfg.heading_steps, distractors=cfg.distractors,

@@ -382,6 +382,15 @@ class Trainer:
         task.train()
         return metrics
 
+    def validation_outputs(self, task: Task, loader: DataLoader, name: str) -> dict[str, torch.Tensor]:
+        """validation_step's outputs over one named loader, gathered in dataset order: validate's first half, for
+        a caller that scores several query sets against one encoding of the references (`geoloc bench`)."""
+        task.eval()
+        try:
+            return self._run_validation(task, loader, name)
+        finally:
+            task.train()
+
     def _run_validation(self, task: Task, loader: DataLoader, name: str | None) -> dict[str, torch.Tensor]:
         chunks: dict[str, list[torch.Tensor]] = {}
         for batch in tqdm(loader, desc=f"validate {name or ''}".strip(), leave=False, dynamic_ncols=True,

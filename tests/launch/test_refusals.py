@@ -33,11 +33,10 @@ def test_hydra_full_error_shows_the_traceback(tmp_path):
     assert "Traceback" in proc.stderr and "ConfigError: localize.py: fov='abc'" in proc.stderr
 
 
-def test_the_geoloc_command_prints_the_line_too(tmp_path, capsys, monkeypatch):
-    from geoloc import cli
-
-    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
-    monkeypatch.chdir(tmp_path)
-    assert cli.main(["localize", *BAD]) == 1
-    assert "ConfigError: localize.py: fov='abc'" in capsys.readouterr().err
+def test_the_geoloc_command_prints_the_line_too(tmp_path):
+    env = {key: value for key, value in ENV.items() if key != "HYDRA_FULL_ERROR"}
+    proc = subprocess.run([sys.executable, "-m", "geoloc.cli", "localize", *BAD], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)  # a process: Hydra configures its logging
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert "ConfigError: localize.py: fov='abc'" in proc.stderr
     assert not [p for p in (tmp_path / "outputs").rglob("*") if p.is_file() or p.name.startswith("20")]

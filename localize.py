@@ -7,6 +7,7 @@ from omegaconf import DictConfig
 
 import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
 from geoloc.apps.localize.run import LocalizeConfig, localize
+from geoloc.launch.refusal import refusals_in_one_line
 from geoloc.launch.schemas import store_dataclass
 
 store_dataclass("localize", LocalizeConfig)  # the defaults conf/localize.yaml extends
@@ -14,7 +15,8 @@ store_dataclass("localize", LocalizeConfig)  # the defaults conf/localize.yaml e
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="localize")
 def main(cfg: DictConfig) -> None:
-    localize(cfg)
+    with refusals_in_one_line():  # a ConfigError: one line, no traceback (HYDRA_FULL_ERROR=1 shows it)
+        localize(cfg)
 
 
 if __name__ == "__main__":

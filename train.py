@@ -10,13 +10,15 @@ import hydra
 from omegaconf import DictConfig
 
 import geoloc.launch.hydra_hooks  # noqa: F401  (registers ${pid:}, used in the default run dir)
+from geoloc.launch.refusal import refusals_in_one_line
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     from geoloc.launch.run import objective, train
 
-    return objective(cfg, train(cfg))  # the value Hydra sweepers optimise (the task's sweep_metric)
+    with refusals_in_one_line():  # a ConfigError: one line, no traceback (HYDRA_FULL_ERROR=1 shows it)
+        return objective(cfg, train(cfg))  # the value Hydra sweepers optimise (the task's sweep_metric)
 
 
 if __name__ == "__main__":

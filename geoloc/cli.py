@@ -57,6 +57,8 @@ def run_script(name: str, args: list[str]) -> int:
     try:
         runpy.run_path(str(script), run_name="__main__")
     except SystemExit as exit_:
+        if isinstance(exit_.code, str):  # a refusal's one line (geoloc/launch/refusal.py), as python would print it
+            print(exit_.code, file=sys.stderr)
         return exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
     finally:
         sys.argv = argv

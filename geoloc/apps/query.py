@@ -20,12 +20,14 @@ from typing import Any
 
 from PIL import Image, UnidentifiedImageError
 
+SEARCH = "search"  # heading=search: the heading is searched whatever the checkpoint was trained on
 OPENCV_SIDE = 32_766  # cv2.remap takes fewer than 32,767 rows and columns; the IPT appends one wrap column
 
 FOV = "the horizontal field of view in degrees, in (0, 360]: 360 for a full panorama (the default)"
 TOPK = "how many references to return, an integer from 1 to max_topk (default 5)"
 HEADING = ("the image's bearing in degrees clockwise from north, when known (0 for a north-aligned panorama); "
-           "leave it out to have it searched")
+           "'search' to have it searched over candidate headings; left out: as the checkpoint was trained "
+           "(searched when it was trained with an unknown heading, else north, 0)")
 HEADING_PRIOR = ("how far, in degrees, the true bearing may lie from the given heading, in [0, 180]: the heading "
                  "search then tries only the candidate headings within heading ± heading_prior (needs heading)")
 ABSTAIN = ("a confidence threshold in [0, 1]: an answer whose confidence (the calibrated probability that its top-1 "
@@ -39,7 +41,9 @@ class QuerySettings:
 
     fov: float = 360.0  # the image's horizontal field of view in degrees: 360 = a panorama; less = a street photo
     topk: int = 5  # references returned
-    heading: float | None = None  # its bearing when known (degrees clockwise from north; CVUSA panoramas: 0)
+    # its bearing when known (degrees clockwise from north; CVUSA panoramas: 0), "search", or None: as the checkpoint
+    # was trained (Localizer.settings: searched when trained with an unknown heading, else 0)
+    heading: Any = None
     heading_prior: float | None = None  # ± degrees around `heading` the search tries; None: heading taken as exact
     abstain: float | None = None  # answers less confident than this abstain; None: never
 
@@ -113,12 +117,17 @@ def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_t
     if max_topk is not None and topk > max_topk:
         raise QueryError("max_topk", f"topk={topk} is over the limit of {max_topk} references an answer lists "
                                      "(max_topk): ask for fewer", 413)
-    heading = default.heading if heading is None or heading == "" else _number("heading", heading)
+    if heading is None or heading == "":
+        heading = default.heading
+    elif isinstance(heading, str) and heading.strip().lower() == SEARCH:
+        heading = SEARCH
+    else:
+        heading = _number("heading", heading)
     prior = None if heading_prior is None or heading_prior == "" else _number("heading_prior", heading_prior)
     if prior is not None:
         if not 0.0 <= prior <= 180.0:
             raise _bad("heading_prior", heading_prior, "is outside [0, 180]")
-        if heading is None:
+        if heading is None or heading == SEARCH:
             raise _bad("heading_prior", heading_prior, "is given without heading: give the heading it is around")
     threshold = None if abstain is None or abstain == "" else _number("abstain", abstain)
     if threshold is not None and not 0.0 <= threshold <= 1.0:

@@ -49,3 +49,12 @@ def require_root(root, name: str) -> None:
     if not root:
         raise ConfigError(f"dataset={name} needs dataset.root=/path/to/{name.upper()} (it is missing); the embedded "
                           "synthetic data is dataset=synthetic, vigor or u1652 with no root")
+
+
+def check_split(dataset: str, split: str, splits) -> None:
+    """A split name the dataset does not have is refused, listing the ones it has (CVUSA: train/val, where CVACT
+    has a test split too)."""
+    if split not in splits:
+        raise ConfigError(f"dataset.split={split!r} is not a split of {dataset}: split must be one of "
+                          f"{list(splits)} (CVUSA and the embedded synthetic data: train, val; CVACT: train, val, "
+                          "test; VIGOR and University-1652: train, test)")

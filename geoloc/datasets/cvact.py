@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.datasets.common import pairs_split, require_root, tile_frame
+from geoloc.datasets.common import check_split, pairs_split, require_root, tile_frame
 from geoloc.registry import register
 
 CVACT_SPLITS = {"train": ("trainSet", "trainInd", "ANU_data_small"),
@@ -28,8 +28,7 @@ def cvact_index(root: str | Path, split: str) -> tuple[list[tuple[Path, Path]], 
     from scipy.io import loadmat
 
     root = Path(root)
-    if split not in CVACT_SPLITS:
-        raise ValueError(f"CVACT has splits {sorted(CVACT_SPLITS)}, not {split!r}")
+    check_split("CVACT", split, CVACT_SPLITS)
     mat_path = root / "ACT_data.mat"
     if not mat_path.is_file():
         raise FileNotFoundError(f"CVACT index {mat_path} not found. dataset.root must be the CVACT folder holding "

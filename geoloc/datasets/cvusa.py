@@ -10,7 +10,7 @@ from pathlib import Path
 
 from geoloc.data.list_files import csv_rows, refuse_repeats
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.datasets.common import pairs_split, require_root, tile_frame
+from geoloc.datasets.common import check_split, pairs_split, require_root, tile_frame
 from geoloc.data.positions import read_positions
 from geoloc.registry import register
 
@@ -23,8 +23,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 def cvusa_pairs(root: str | Path, split: str) -> list[tuple[Path, Path]]:
     root = Path(root)
-    if split not in CVUSA_SPLITS:
-        raise ValueError(f"CVUSA has splits {sorted(CVUSA_SPLITS)}, not {split!r}")
+    check_split("CVUSA", split, CVUSA_SPLITS)
     csv_path = root / "splits" / CVUSA_SPLITS[split]
     if not csv_path.is_file():
         raise FileNotFoundError(f"CVUSA split file {csv_path} not found. dataset.root must be the CVUSA folder "
@@ -72,6 +71,7 @@ def synthetic(root: str | None, split: str, preset: str = "small", train_size: i
     """The embedded default: a synthetic world in CVUSA's layout. `seed` picks the world, not the run's seed."""
     from geoloc.synthetic import default_cache, ensure_dataset
 
+    check_split("the synthetic dataset (CVUSA's layout)", split, CVUSA_SPLITS)  # before rendering a world
     root = Path(root).expanduser() if root else default_cache() / f"cvusa-{preset}-{train_size}-{val_size}-seed{seed}"
     root = Path(ensure_dataset("cvusa", root, preset=preset, train=train_size, val=val_size, seed=seed,
                                workers=workers))

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.datasets.common import with_view
+from geoloc.datasets.common import check_split, with_view
 from geoloc.registry import register
 
 DIRECTIONS = {  # direction -> split -> (query folder, reference folder)
@@ -34,8 +34,7 @@ def u1652_split(root, split: str = "test", direction: str = "drone_to_satellite"
     root = Path(root)
     if direction not in DIRECTIONS:
         raise ValueError(f"University-1652 direction must be one of {list(DIRECTIONS)}, got {direction!r}")
-    if split not in SPLITS:
-        raise ValueError(f"University-1652 split must be one of {list(SPLITS)}, got {split!r}")
+    check_split("University-1652", split, SPLITS)
     query_dir, ref_dir = (root / d for d in DIRECTIONS[direction][split])
     queries, query_labels = _images(query_dir)
     references, reference_labels = _images(ref_dir)

@@ -43,7 +43,7 @@ import numpy as np
 from geoloc.data.list_files import list_lines, refuse_repeats
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.data.tile_offsets import OFFSETS_FILE, read_offsets
-from geoloc.datasets.common import tile_frame, with_view
+from geoloc.datasets.common import check_split, tile_frame, with_view
 from geoloc.registry import register
 
 CITIES = ("Chicago", "NewYork", "SanFrancisco", "Seattle")  # the released folder names
@@ -63,14 +63,14 @@ ORIGINAL_METRES_PER_PX = 0.114
 
 def default_cities(setting: str, split: str) -> tuple[str, ...]:
     _check_choice("setting", setting, SETTINGS)
-    _check_choice("split", split, SPLITS)
+    check_split("VIGOR", split, SPLITS)
     return CITIES if setting == "same_area" else CROSS_AREA_CITIES[split]
 
 
 def split_file(setting: str, split: str) -> str:
     """The file, under ROOT/splits/<City>/, that lists the panoramas of (setting, split)."""
     _check_choice("setting", setting, SETTINGS)
-    _check_choice("split", split, SPLITS)
+    check_split("VIGOR", split, SPLITS)
     return f"same_area_balanced_{split}.txt" if setting == "same_area" else "pano_label_balanced.txt"
 
 

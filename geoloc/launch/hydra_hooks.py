@@ -2,6 +2,7 @@
 
 - the schema nodes (geoloc/launch/schemas.py), stored when this module is imported (train.py, evaluate.py,
   localize.py, export.py, and tests that compose configs): every config key's default, from its one home;
+- `${out_or:DEFAULT}` (conf/localize.yaml's run dir): `out=` when given, else DEFAULT;
 - `${pid:}`, registered when this module is imported (train.py, evaluate.py): the process id, so default run dirs
   `outputs/<task>/<dataset>/<date>_<time>_<pid>` differ even for runs started in the same second. Cached like
   Hydra's `${now:}`, so a sweep job started by a launcher in another process resolves the sweep dir to the same
@@ -34,6 +35,16 @@ CONF = Path(__file__).resolve().parents[2] / "conf"
 
 def register_resolvers() -> None:
     OmegaConf.register_new_resolver("pid", lambda: os.getpid(), replace=True, use_cache=True)
+    OmegaConf.register_new_resolver("out_or", out_or, replace=True)
+
+
+def out_or(default: str, *, _root_: DictConfig) -> str:
+    """`${out_or:DEFAULT}`: the config's `out` when the command line gave one, else DEFAULT. localize.py's run dir
+    is its out= folder, so out=DIR makes no second, empty folder under outputs/localize/."""
+    node = _root_._get_node("out")
+    if node is None or node._is_interpolation() or node._is_missing() or node._value() is None:
+        return default
+    return str(node._value())
 
 
 def compose_conf(name: str, overrides: list[str], conf: str | Path = CONF) -> DictConfig:

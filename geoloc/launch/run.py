@@ -18,8 +18,10 @@ from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.engine import distributed as dist
 from geoloc.launch import resume
+from geoloc.launch.run_log import run_log
 from geoloc.launch.rundir import claimed
 
+RUN_METRICS = "metrics.json"  # an evaluation's metrics in its own run dir
 DEFAULT_TASK = {"name": "crossview"}  # a checkpoint whose config names no task was written by the cross-view task
 
 
@@ -41,7 +43,7 @@ def train(cfg: DictConfig) -> dict:
         task = find_task(cfg.task)
         given = command_line(cfg)
         cfg = without_hydra(cfg)
-        with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir:
+        with claimed(cfg.run_dir, ckpt=cfg.get("ckpt")) as run_dir, run_log(run_dir, "train"):
             canonical = getattr(task, "canonical_config", None)  # a task that can resume says how it compares
             if cfg.get("ckpt") and canonical is not None:  # before any data is generated or checked
                 cfg = resume.resumed_config(cfg, task.RESUME_MAY_CHANGE, canonical, given)
@@ -85,18 +87,21 @@ def without_hydra(cfg: DictConfig) -> DictConfig:
 
 
 def evaluate(cfg: DictConfig) -> dict:
-    """Score cfg.ckpt with the task that wrote it. Under Hydra its run dir (Hydra's log and config) is owned like a
-    training's, so a failed start leaves none; a config composed outside Hydra may have no run dir."""
+    """Score cfg.ckpt with the task that wrote it. Under Hydra its run dir is owned like a training's, so a failed
+    start leaves none, and holds the evaluation's record: `.hydra/`, `evaluate.log` (what it printed) and
+    `metrics.json` (besides any metrics_out=). A config composed outside Hydra may have no run dir."""
     from geoloc.engine import checkpoint
 
     run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
-    with claimed(run_dir, role="evaluation") if run_dir else contextlib.nullcontext():
+    with claimed(run_dir, role="evaluation") if run_dir else contextlib.nullcontext(), run_log(run_dir, "evaluate"):
         refuse_existing_metrics_out(cfg)
         state = checkpoint.load(cfg.ckpt)
         stored = OmegaConf.create(state.get("config") or "{}")
         metrics = find_task(stored.get("task")).evaluate(cfg, state)
         if cfg.get("metrics_out") and dist.is_main():
             write_metrics(Path(cfg.metrics_out), metrics, overwrite=cfg.get("metrics_out_overwrite", False))
+        if run_dir and dist.is_main():
+            write_metrics(Path(run_dir) / RUN_METRICS, metrics, overwrite=True)
         return metrics
 
 

@@ -73,7 +73,7 @@ def claimed(run_dir: str | Path, ckpt: str | None = None, role: str = "training"
                     tmp.unlink()
             yield run_dir
         except BaseException:
-            if holds_nothing(run_dir) and not _is_cwd_or_above(run_dir):
+            if holds_nothing(run_dir) and not is_cwd_or_above(run_dir):
                 shutil.rmtree(run_dir, ignore_errors=True)
             raise
     finally:
@@ -133,6 +133,6 @@ def _refuse_output(run_dir: Path, ckpt: str | None, role: str = "training", key:
                       f"training. {ways}")
 
 
-def _is_cwd_or_above(path: Path) -> bool:
+def is_cwd_or_above(path: Path) -> bool:
     here, path = Path.cwd().resolve(), path.resolve()
     return here == path or path in here.parents

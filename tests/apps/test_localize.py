@@ -103,7 +103,7 @@ def test_localize_equals_brute_force_scoring_with_and_without_heading_search(gal
     assert [h["row"] for h in known["topk"]] == [r for r, _, _ in expect[:4]]
     assert [h["score"] for h in known["topk"]] == pytest.approx([s for _, s, _ in expect[:4]], abs=1e-5)
 
-    searched = loc.localize(image, topk=5, path=path).to_json()
+    searched = loc.localize(image, topk=5, heading="search", path=path).to_json()
     inputs, headings = query_candidates(image, loc.encoder.data, "panorama", 360.0, 8)
     expect = brute_force(loc, inputs, headings)[:5]
     assert [(h["row"], h["heading_deg"]) for h in searched["topk"]] == [(r, hd) for r, _, hd in expect]
@@ -162,7 +162,8 @@ def test_localize_py_answers_a_folder_with_one_json_line_and_picture_each(galler
     (images / "notes.txt").write_text("not an image")
     with initialize_config_dir(str(CONF), version_base="1.3"):
         cfg = compose("localize", overrides=[f"ckpt={ckpt}", f"gallery={folder}", f"image={images}", "topk=3",
-                                             f"out={tmp_path / 'out'}", "device=cpu", "heading_steps=4"])
+                                             f"out={tmp_path / 'out'}", "device=cpu", "heading=search",
+                                             "heading_steps=4"])
     answers = localize(cfg)
     lines = (tmp_path / "out" / "localize.jsonl").read_text().splitlines()
     assert [json.loads(line) for line in lines] == answers and len(answers) == 2

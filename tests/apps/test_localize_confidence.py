@@ -58,7 +58,7 @@ def test_the_confidence_is_the_calibrator_on_the_top2_scores_for_a_given_heading
     assert answer.calibrated is True and answer.abstained is None and len(answer.topk) == 1
     assert loc.localize(image, heading=0, abstain=answer.confidence + 1e-3).abstained is True
     assert loc.localize(image, heading=0, abstain=answer.confidence - 1e-3).to_json()["abstained"] is False
-    searched = loc.localize(image).to_json()  # a heading search: not the condition the confidence was fitted in
+    searched = loc.localize(image, heading="search").to_json()  # not the condition the confidence was fitted in
     assert "confidence" not in searched and searched["calibrated"] is False
     assert loc.info()["calibration"]["condition"] == {"heading": "given", "fov": 360.0}
     assert plain.localize(image, heading=0).calibrated is False
@@ -72,7 +72,7 @@ def test_abstain_needs_a_confidence_for_the_query(calibrated):
                                          "uncalibrated: no labelled queries were kept out of training"):
         plain.localize(image, heading=0, abstain=0.5)
     with pytest.raises(QueryError, match=r"calibrated for \{'heading': 'given', 'fov': 360.0\}"):
-        loc.localize(image, abstain=0.5)  # no heading: searched
+        loc.localize(image, heading="search", abstain=0.5)
     with pytest.raises(QueryError, match="needs the answer's confidence"):
         loc.localize(image, heading=0, heading_prior=20, abstain=0.5)
 

@@ -2,11 +2,14 @@
 
 The gallery is what `python evaluate.py ckpt=... gallery.save=DIR` writes (geoloc/tasks/crossview/gallery.py and
 places.py): the reference descriptors, where each reference is, and the split's queries. The heading is unknown in
-general, so the image is encoded at K candidate headings on the 360° canvas (geoloc/tasks/crossview/views.py) and each
-reference keeps its best-scoring candidate: the score ranks the references, the candidate is the heading estimate
-(a circular correlation through the query encoder, DSM-style). `heading=` skips the search when it is known
-(north-aligned panoramas such as CVUSA's are heading 0); `heading_prior=` with it searches only the candidates within
-± that many degrees of it.
+general, so `heading=search` encodes the image at K candidate headings on the 360° canvas
+(geoloc/tasks/crossview/views.py) and each reference keeps its best-scoring candidate: the score ranks the
+references, the candidate is the heading estimate (a circular correlation through the query encoder, DSM-style).
+`heading=` a number skips the search when it is known (north-aligned panoramas such as CVUSA's are heading 0);
+`heading_prior=` with it searches only the candidates within ± that many degrees of it. A query that gives no
+heading is answered as the checkpoint was trained (`default_heading`): searched when it was trained with an unknown
+heading, else at north, since a model trained on north-aligned views loses most of its recall to a search
+(docs/heading.md).
 
 The confidence (docs/confidence.md) is the gallery's calibrated P(top-1 tile right), from the top-1 score and its
 margin over the second; it is given where the query's condition is the one it was fitted in (the heading given,
@@ -25,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geoloc.apps.query import (QueryError, QueryLimits, QuerySettings, check_headings, check_settings,
+from geoloc.apps.query import (SEARCH, QueryError, QueryLimits, QuerySettings, check_headings, check_settings,
                                         check_size, image_size)
 from geoloc.config import ConfigError
 from geoloc.data.validate import decode_rgb
@@ -82,7 +85,8 @@ class Localizer:
         """What /health and the JSON output say about the loaded model and gallery."""
         return {"ckpt": self.meta.get("ckpt_loaded"), "gallery_size": len(self.index), "dim": self.index.dim,
                 "index": self.index.kind, "positions": self.places.kind, "query_view": self.view,
-                "device": str(self.device), "heading_steps": self.heading_steps, "limits": vars(self.limits),
+                "device": str(self.device), "heading_steps": self.heading_steps,
+                "default_heading": self.default_heading, "limits": vars(self.limits),
                 "calibration": self.calibration_info()}
 
     def calibration_info(self) -> dict:
@@ -100,13 +104,19 @@ class Localizer:
                                "fitted_on": self.within.fitted_on}
         return info
 
+    @property
+    def default_heading(self) -> float | str:
+        """The heading of a query that gives none: searched ("search") when the checkpoint was trained with an
+        unknown heading, else north (0), the condition it was trained in."""
+        return SEARCH if self.encoder.trained_heading_unknown else 0.0
+
     def calibrated_for(self, query: QuerySettings) -> bool:
         """Whether the confidence holds for a query of these settings: the heading given exactly, at the field of
         view the calibration was fitted at."""
         if self.calibrator is None:
             return False
         condition = self.calibrator.condition
-        return (query.heading is not None and not query.heading_prior
+        return (query.heading != SEARCH and not query.heading_prior
                 and query.fov == condition.get("fov", 360.0))
 
     def check(self, width: int, height: int, fov=None, topk=None, heading=None, name: str = "the image",
@@ -122,6 +132,8 @@ class Localizer:
         """A query's settings as given, checked against this gallery (abstain needs its confidence) without an
         image: the settings, or QueryError naming the setting."""
         settings = check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
+        if settings.heading is None:  # not given: as the checkpoint was trained
+            settings.heading = self.default_heading
         if settings.abstain is not None and not self.calibrated_for(settings):
             info = self.calibration_info()
             held = (f"its confidence is calibrated for {info['condition']}" if info["calibrated"] else
@@ -132,12 +144,12 @@ class Localizer:
         return settings
 
     @torch.no_grad()
-    def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | None = None,
+    def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | str | None = None,
                  name: str | None = None, path: Path | None = None, deadline: float | None = None,
                  heading_prior: float | None = None, abstain: float | None = None) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
         photo covering `fov` degrees of bearing, horizon band only. heading: its bearing when known (degrees
-        clockwise from north); None searches `heading_steps` candidates. path: the file, to find the image among
+        clockwise from north); "search" searches `heading_steps` candidates; None: `default_heading`. path: the file, to find the image among
         the gallery split's queries (its true position then comes with the answer). deadline: a time.monotonic()
         past which the search stops with QueryError (503) instead of encoding its next candidates. heading_prior:
         search only within ± this many degrees of `heading`. abstain: a confidence threshold (module docstring)."""
@@ -146,7 +158,7 @@ class Localizer:
                              f"{getattr(image, 'dtype', '')}")
         query = self.check(image.shape[1], image.shape[0], fov, topk, heading, name or str(path or "the image"),
                            heading_prior, abstain)
-        given = query.heading
+        given = None if query.heading == SEARCH else query.heading
         if query.heading_prior:
             given = headings_around(query.heading, query.heading_prior, self.heading_steps)
         inputs, headings = self.encoder.street_inputs(image, query.fov, given, self.heading_steps, view=self.view)
@@ -161,7 +173,7 @@ class Localizer:
         if self.calibrated_for(query):
             features = retrieval_features([[hit["score"] for hit in merged[:2]]])
             confidence = float(self.calibrator.probability(features)[0])
-        source = "search" if query.heading is None else "prior" if query.heading_prior else "given"
+        source = "search" if query.heading == SEARCH else "prior" if query.heading_prior else "given"
         answer = LocalizationResult(image=name or (str(path) if path else None), fov_deg=query.fov,
                                     heading_deg=best[0]["heading_deg"], heading_source=source,
                                     position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,

@@ -21,6 +21,7 @@ from omegaconf import MISSING, DictConfig
 from geoloc.apps.localize.localizer import Localizer, check_street, read_street
 from geoloc.apps.query import QueryError, QueryLimits, QuerySettings, check_settings
 from geoloc.config import ConfigError, checked
+from geoloc.launch.run_log import run_log
 from geoloc.launch.rundir import claimed
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -35,7 +36,7 @@ class LocalizeConfig(QueryLimits, QuerySettings):
     gallery: str = MISSING  # a gallery saved from it: python evaluate.py ckpt=... gallery.save=DIR
     image: str = MISSING  # one image, or a folder of them
     out: str = MISSING  # where localize.jsonl and the pictures go (default: a new folder under outputs/localize/)
-    heading_steps: int | None = None  # candidate headings tried when heading is null; null: the checkpoint's own
+    heading_steps: int | None = None  # candidate headings of a heading search; null: the checkpoint's own
     device: str = "auto"
     picture: bool = True  # one PNG per image: the query, the top-k tiles and a map of the candidates
 
@@ -80,7 +81,8 @@ def localize(section: DictConfig) -> list[dict]:
     out = Path(cfg.out)
     refuse_out_holding_inputs(out, images)
     answers = []
-    with claimed(out, role="localization", key="out"):  # one writer per folder; a failed start leaves none
+    with claimed(out, role="localization", key="out"), run_log(out, "localize"):  # one writer per folder; a failed
+        # start leaves none; the log holds what the run printed
         localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps,
                                    limits=cfg)
         query = {"fov": cfg.fov, "topk": cfg.topk, "heading": cfg.heading, "heading_prior": cfg.heading_prior,

@@ -7,9 +7,10 @@ GET / -> the page (static/index.html + page.js: drop a street image, see the ans
 gallery's tile image of that row (what the page shows of the top-k)
 GET /health -> {"status": "ok", **localizer.info()}
 POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama),
-`topk` (1 to max_topk, default 5), `heading` (degrees clockwise from north when known; default: searched),
-`heading_prior` (± degrees around heading to search) and `abstain` (a confidence threshold in [0, 1]) as form
-fields or query parameters, each given once -> localizer.localize(...)'s answer, as JSON.
+`topk` (1 to max_topk, default 5), `heading` (degrees clockwise from north when known, or `search`; default: as
+the checkpoint was trained, Localizer.default_heading), `heading_prior` (± degrees around heading to search) and
+`abstain` (a confidence threshold in [0, 1]) as form fields or query parameters, each given once ->
+localizer.localize(...)'s answer, as JSON.
 No response carries CORS headers: a page of another origin cannot read the answers. Every response carries a
 Content-Security-Policy and frame protection (headers.py). FastAPI's /docs and /redoc, which load scripts from a
 CDN, are off unless `api_docs`; /openapi.json describes the API.

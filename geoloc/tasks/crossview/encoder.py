@@ -83,6 +83,14 @@ class CrossViewEncoder:
         """What the query branch takes: "panorama", "sphere" or "image"."""
         return self._recorded["train"] if "train" in self._recorded else self._reader_views["train"]
 
+    @property
+    def trained_heading_unknown(self) -> bool:
+        """Whether training showed the street view at a random bearing (dataset.random_heading, or views=any_view),
+        so that the apps search an unknown heading by default; otherwise it learnt north-aligned views, which a
+        search turns into a harder task than the one it was trained for (docs/heading.md)."""
+        views = OmegaConf.select(self.config, "views.name", default=None)
+        return bool(self.data.random_heading) or views == "any_view"
+
     @cached_property
     def fingerprint(self) -> str:
         """The weights' fingerprint (engine/checkpoint.py), as saved galleries record it."""

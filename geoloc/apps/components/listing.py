@@ -45,7 +45,7 @@ def describe(kind: str) -> list[str]:
         factory = registry.lookup(kind, name)
         where = getattr(factory, "__module__", None) or getattr(factory, "__name__", "")
         built = f"{where}.{getattr(factory, '__qualname__', '')}".rstrip(".")
-        lines.append(f"  {name:18s}{built}")
+        lines.append(f"  {name:17s} {built}")
         if keys(factory, declared.runtime):
             lines.append(f"  {'':18s}{'  '.join(keys(factory, declared.runtime))}")
     return lines

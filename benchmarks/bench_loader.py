@@ -71,7 +71,8 @@ def dataset_cfg(code: Path, overrides: list[str], root: Path, extra: dict):
     from geoloc.launch.hydra_hooks import compose_conf
     from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 
-    cfg = compose_conf("train", overrides, conf=code / "conf")
+    conf = code / "geoloc" / "conf"
+    cfg = compose_conf("train", overrides, conf=conf if conf.is_dir() else code / "conf")  # an older checkout
     keys = {f.name for f in dataclasses.fields(CrossViewDataConfig)}
     section = {k: v for k, v in OmegaConf.to_container(cfg.dataset, resolve=False).items() if k in keys}
     section.update(name="cvusa", root=str(root), check_files="off")

@@ -1,7 +1,7 @@
 """Training speed at the paper size: step pairs/s against loader pairs/s (does decoding keep up with the step?).
 
 Paper size: batch 64, 288 x 288 for both branches (IPT street image and aerial), two unshared VGG16 (width 1.0)
-+ MSAE, descriptor dim 4,096, GMS queue 1,024 (conf/experiment/paper_cvusa.yaml). The model is random-initialised
++ MSAE, descriptor dim 4,096, GMS queue 1,024 (geoloc/conf/experiment/paper_cvusa.yaml). The model is random-initialised
 (speed does not depend on the weights).
 
 - step: one training step as the Trainer runs it (forward through the task, backward, Adam step, queue push) on

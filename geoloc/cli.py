@@ -1,25 +1,23 @@
 """The `geoloc` console script: `geoloc SUBCOMMAND key=value ...` (pyproject [project.scripts]).
 
 Every app is reachable from it:
-- train, evaluate, localize, export run the repository's Hydra entry points (train.py, evaluate.py, localize.py,
-  export.py) with the same arguments, so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`;
-- serve and gallery are modules with `USAGE` (text) and `main(args) -> exit code`, imported only when named, so
-  `geoloc --help` works without the optional extras a subcommand needs.
+- train, evaluate, localize, export are the Hydra entry points of the package (geoloc/launch/entry_points.py,
+  composing geoloc/conf/), so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`, and both work from
+  an installed wheel;
+- the other subcommands are modules with `USAGE` (text) and `main(args) -> exit code`, imported only when named,
+  so `geoloc --help` works without the optional extras a subcommand needs.
 """
 
 from __future__ import annotations
 
 import importlib
-import runpy
 import sys
-from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from geoloc.config import ConfigError, checked
 
-REPO = Path(__file__).resolve().parents[1]
-SCRIPTS = {  # name: (the entry point in the repository, what it does)
+SCRIPTS = {  # name: (the script at a checkout's root that runs the same entry point, what it does)
     "train": ("train.py", "train a task (the embedded default: cross-view on synthetic data)"),
     "evaluate": ("evaluate.py", "score a checkpoint on a split; save or load a gallery"),
     "localize": ("localize.py", "street images against a saved gallery: top-k tiles, position, heading"),
@@ -46,20 +44,18 @@ def usage() -> str:
 
 
 def run_script(name: str, args: list[str]) -> int:
-    """Run the repository's entry point `name` as `python <script> args` would; its exit status."""
-    script = REPO / SCRIPTS[name][0]
-    if not script.is_file():
-        print(f"geoloc {name} runs {SCRIPTS[name][0]} and the conf/ folder of a geoloc checkout, and {REPO} holds "
-              f"none: install geoloc from its repository with pip install -e .", file=sys.stderr)
-        return 2
+    """Run the entry point `name` as `python <script> args` would; its exit status."""
+    from geoloc.launch.entry_points import VERBS
+
     argv = sys.argv
-    sys.argv = [str(script), *args]
+    sys.argv = [f"geoloc {name}", *args]
     try:
-        runpy.run_path(str(script), run_name="__main__")
+        VERBS[name]()
     except SystemExit as exit_:
-        if isinstance(exit_.code, str):  # a refusal's one line (geoloc/launch/refusal.py), as python would print it
+        if isinstance(exit_.code, str):  # a refusal's one line (launch/refusal.py)
             print(exit_.code, file=sys.stderr)
-        return exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
+            return 1
+        return exit_.code if isinstance(exit_.code, int) else 0
     finally:
         sys.argv = argv
     return 0

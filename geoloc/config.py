@@ -50,7 +50,7 @@ def top_level(cfg: DictConfig, schema: type[T], where: str) -> T:
 
 @dataclass
 class TrainKeys:
-    """train.py's own keys (the top level of conf/train.yaml)."""
+    """train.py's own keys (the top level of geoloc/conf/train.yaml)."""
 
     seed: int = 0  # the run's seed: initialisation, sampling and augmentation (dataset.seed picks a synthetic world)
     ckpt: str | None = None  # resume exactly from this last.pt, with the config stored in it
@@ -61,7 +61,7 @@ class TrainKeys:
 
 @dataclass
 class EvaluateKeys:
-    """evaluate.py's own keys (the top level of conf/evaluate.yaml)."""
+    """evaluate.py's own keys (the top level of geoloc/conf/evaluate.yaml)."""
 
     ckpt: str = MISSING  # the checkpoint to score: a best.pt / last.pt written by train.py
     metrics_out: str | None = None  # write the metrics as JSON to this file

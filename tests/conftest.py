@@ -15,7 +15,7 @@ from geoloc.launch.schemas import store_dataclass
 store_dataclass("localize", LocalizeConfig)  # as localize.py stores it
 
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = REPO / "geoloc" / "conf"
 REALDATA = REPO.parent / "shared" / "realdata"
 
 

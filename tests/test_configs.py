@@ -57,7 +57,7 @@ def task_of_option(group: str, option: str) -> str:
 @pytest.mark.slow
 @pytest.mark.parametrize("group,option", every_option())
 def test_every_option_of_every_group_composes_and_builds(group, option, imagenet_stand_in, tmp_path):
-    """Each option of each conf/ group composes for its task and builds what it configures, offline."""
+    """Each option of each geoloc/conf/ group composes for its task and builds what it configures, offline."""
     task = task_of_option(group, option)
     overrides = [f"{group}={option}", f"run_dir={tmp_path}"]
     if task == "mmdip" and group not in ("task", "experiment"):

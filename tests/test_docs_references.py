@@ -1,7 +1,7 @@
 """The docs name only files, modules and functions that exist, and point nowhere outside the project.
 
 What is read: README.md, docs/*.md and benchmarks/README.md (paragraph by paragraph), the comments of
-conf/**/*.yaml, and the docstrings and comments of geoloc/**/*.py, tools/*.py, benchmarks/*.py, data_prep/*.py and
+geoloc/conf/**/*.yaml, and the docstrings and comments of geoloc/**/*.py, tools/*.py, benchmarks/*.py, data_prep/*.py and
 the root scripts.
 
 The rules. Each resolves a reference one way only, so that a correct tree passes with nothing to allow:
@@ -62,7 +62,7 @@ TOP = ("geoloc", "tests", "docs", "conf", "benchmarks", "tools", "data_prep")
 
 def sources() -> list[Path]:
     md = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md")), REPO / "benchmarks" / "README.md"]
-    yaml = sorted((REPO / "conf").rglob("*.yaml"))
+    yaml = sorted((REPO / "geoloc" / "conf").rglob("*.yaml"))
     py = [*sorted((REPO / "geoloc").rglob("*.py")), *sorted(REPO.glob("*.py"))]
     for folder in ("tools", "benchmarks", "data_prep"):
         py += sorted((REPO / folder).glob("*.py"))
@@ -216,7 +216,7 @@ def known_words() -> tuple[frozenset[str], tuple[re.Pattern, ...]]:
                 if isinstance(node.values[0], ast.Constant) and "_" in node.values[0].value:  # a name's shape
                     shape = "".join(re.escape(v.value) if isinstance(v, ast.Constant) else r"\w+" for v in node.values)
                     shapes.append(re.compile(shape))
-    for file in [*(REPO / "conf").rglob("*.yaml"), REPO / "pyproject.toml"]:
+    for file in [*(REPO / "geoloc" / "conf").rglob("*.yaml"), REPO / "pyproject.toml"]:
         text = "\n".join(line.split("#", 1)[0] for line in file.read_text(encoding="utf-8").splitlines())
         words.update(re.findall(r"\w+", text))
     return frozenset(words), tuple(shapes)
@@ -225,8 +225,8 @@ def known_words() -> tuple[frozenset[str], tuple[re.Pattern, ...]]:
 @lru_cache(maxsize=None)
 def config_keys() -> frozenset[str]:
     """Every key, group and file name of conf/, and the `@name` packages of its defaults: config, not code."""
-    keys = {p.stem for p in (REPO / "conf").rglob("*")}
-    for file in (REPO / "conf").rglob("*.yaml"):
+    keys = {p.stem for p in (REPO / "geoloc" / "conf").rglob("*")}
+    for file in (REPO / "geoloc" / "conf").rglob("*.yaml"):
         for line in file.read_text(encoding="utf-8").splitlines():
             line = line.split("#", 1)[0]
             keys.update(k.split("/")[-1] for k in re.findall(r"^\s*-?\s*/?([\w/]+?)(?:@[\w.]+)?\s*:", line))
@@ -412,7 +412,7 @@ def test_the_checker_reports_each_kind_of_drift(kind, line):
 def test_the_checker_passes_real_references_and_placeholders():
     fine = ("tests/launch/test_resume.py, [usage](usage.md), `geoloc.engine.checkpoint`, geoloc.eval.gallery.KINDS, "
             "geoloc/apps/localize/run.py:localize, `scoring.rank`, `config_nodes()`, `trainer.device`, "
-            "`gallery.json`, outputs/crossview/<date>/best.pt, conf/experiment/*.yaml, gallery.save=DIR/SHARD_i, "
+            "`gallery.json`, outputs/crossview/<date>/best.pt, geoloc/conf/experiment/*.yaml, gallery.save=DIR/SHARD_i, "
             "VIGOR's `dataloader.py`, CCVPE's `ori_noise`, https://github.com/x/y/tests/z.py, `heading_steps`")
     assert check_text(fine, REPO / "docs" / "fake.md") == []
 

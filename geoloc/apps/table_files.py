@@ -11,7 +11,7 @@ from geoloc.config import ConfigError
 
 
 def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):
-    """evaluate.py's config for `overrides`, composed from conf/evaluate.yaml as `python evaluate.py` composes it."""
+    """evaluate.py's config for `overrides`, composed from geoloc/conf/evaluate.yaml as `python evaluate.py` composes it."""
     from geoloc.launch.hydra_hooks import compose_conf
 
     return compose_conf("evaluate", [f"ckpt={ckpt}", f"device={device}", f"num_workers={num_workers}",

@@ -2,7 +2,7 @@
 
 - the schema nodes (geoloc/launch/schemas.py), stored when this module is imported (train.py, evaluate.py,
   localize.py, export.py, and tests that compose configs): every config key's default, from its one home;
-- `${out_or:DEFAULT}` (conf/localize.yaml's run dir): `out=` when given, else DEFAULT;
+- `${out_or:DEFAULT}` (geoloc/conf/localize.yaml's run dir): `out=` when given, else DEFAULT;
 - `${pid:}`, registered when this module is imported (train.py, evaluate.py): the process id, so default run dirs
   `outputs/<task>/<dataset>/<date>_<time>_<pid>` differ even for runs started in the same second. Cached like
   Hydra's `${now:}`, so a sweep job started by a launcher in another process resolves the sweep dir to the same
@@ -30,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from geoloc.launch import schemas
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
 def register_resolvers() -> None:
@@ -48,13 +48,13 @@ def out_or(default: str, *, _root_: DictConfig) -> str:
 
 
 def compose_conf(name: str, overrides: list[str], conf: str | Path = CONF) -> DictConfig:
-    """`conf/<name>.yaml` with `overrides`, as `python <name>.py <overrides>` composes it. `conf` is the conf/ of
-    this checkout unless another is given (a benchmark comparing checkouts)."""
+    """`geoloc/conf/<name>.yaml` with `overrides`, as `python <name>.py <overrides>` composes it; `conf`: another
+    folder of configs (a benchmark comparing checkouts)."""
     if not (Path(conf) / f"{name}.yaml").is_file():
         from geoloc.config import ConfigError
 
-        raise ConfigError(f"{conf} holds no {name}.yaml: geoloc composes its configs from conf/ of a geoloc "
-                          "checkout; install geoloc from its repository with pip install -e .")
+        raise ConfigError(f"{conf} holds no {name}.yaml: pass a folder of geoloc configs (geoloc/conf/ of a checkout "
+                          "or of the installed package)")
     with initialize_config_dir(str(Path(conf).resolve()), version_base="1.3"):
         return compose(name, overrides=list(overrides))
 

@@ -1,9 +1,9 @@
 """The defaults of every config section, given to Hydra from their one home: the dataclasses and the registered
 factories' signatures.
 
-Each option file under conf/ extends one of these nodes and says only what it changes:
+Each option file under geoloc/conf/ extends one of these nodes and says only what it changes:
 
-    # conf/backbone/vgg16_cpu.yaml
+    # geoloc/conf/backbone/vgg16_cpu.yaml
     defaults:
       - /schema/backbone/vgg16@_here_   # every key of the vgg16 factory, at its default
       - _self_

@@ -24,8 +24,8 @@ def msae(in_channels: list[int], dim: int, scale_channels: int = 64, proj_channe
          pool: int = 8, scale_activation: str = "relu") -> MSAEHead:
     """The paper's multi-scale attention encoder over every map the backbone gives (geoloc/models/msae.py).
 
-    scale_activation: "none" is eq. 3 as written (conf/head/msae.yaml, the paper configs); "relu" ends each
-    multi-scale branch in a ReLU, geoloc's choice, the default here (conf/head/msae_cpu.yaml, and every checkpoint
+    scale_activation: "none" is eq. 3 as written (geoloc/conf/head/msae.yaml, the paper configs); "relu" ends each
+    multi-scale branch in a ReLU, geoloc's choice, the default here (geoloc/conf/head/msae_cpu.yaml, and every checkpoint
     whose config does not name it, since that is how they were trained)."""
     _check_sizes(dim=dim, scale_channels=scale_channels, proj_channels=proj_channels, pool=pool)
     return MSAEHead(in_channels, dim, scale_channels=scale_channels, proj_channels=proj_channels, pool=pool,

@@ -149,7 +149,7 @@ PRESETS = {
                                          cell_m=extent / cells, world_margin=2.0, cities=4, grid=8, train=64, val=32)
        for city, extent, cells in (("seattle", 64.52, 168), ("chicago", 71.21, 188), ("newyork", 72.48, 192),
                                    ("sanfrancisco", 75.61, 200))},
-    # the CPU recipes' larger worlds (conf/experiment/vigor_cpu.yaml, u1652_cpu.yaml): the small presets' image
+    # the CPU recipes' larger worlds (geoloc/conf/experiment/vigor_cpu.yaml, u1652_cpu.yaml): the small presets' image
     # sizes and test sets, six / eight times the training places (the small ones over-fit within a few epochs)
     "vigor_medium": dict(aerial_size=256, sphere_height=256, sphere_width=512, cell_m=0.38, tile_m=72.96,
                          world_margin=2.0, cities=4, grid=8, train=384, val=32),

@@ -1,5 +1,5 @@
 """The benchmarks compose train.py's config in a process of their own, where no test's conftest has stored the
-schema nodes that conf/ extends. Each composes it through `compose_conf`, which stores them: bench_train.py once
+schema nodes that geoloc/conf/ extends. Each composes it through `compose_conf`, which stores them: bench_train.py once
 composed it bare and failed at its first line on a GPU machine ("Could not load 'schema/views/single'")."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """One checkpoint on one test set under several protocols: the reference descriptors are encoded once, and only the
-queries again for each FoV or heading. Each protocol's config is evaluate.py's own (composed from conf/evaluate.yaml,
+queries again for each FoV or heading. Each protocol's config is evaluate.py's own (composed from geoloc/conf/evaluate.yaml,
 parsed by config.parse_evaluation), and the metrics come from the task's validation_epoch_end, as in run.score."""
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 @dataclass
 class LocalizeConfig(QueryLimits, QuerySettings):
-    """localize.py's keys (conf/localize.yaml extends this node: schema/localize): fov, topk and heading are
+    """localize.py's keys (geoloc/conf/localize.yaml extends this node: schema/localize): fov, topk and heading are
     QuerySettings', the limits on one image QueryLimits' (geoloc/apps/query.py, the same keys as `geoloc serve`'s)."""
 
     ckpt: str = MISSING  # a checkpoint written by train.py

@@ -8,7 +8,7 @@ RESUME_MAY_CHANGE and canonical_config say how a resume compares configs (geoloc
 checkpoint's network, preprocessing and input spec), `LocalizationResult` (one query's answer) and a saved gallery,
 checked and bound to the weights that built it (`open_gallery` -> `SavedGallery`: the index and its places,
 `Places`, `POSITION_KEYS`), and `merge_shards` (one gallery from shard jobs' folders: `geoloc gallery merge`).
-`config_nodes()` gives the defaults conf/ extends. The package registers itself as the task `crossview`.
+`config_nodes()` gives the defaults geoloc/conf/ extends. The package registers itself as the task `crossview`.
 """
 
 import sys

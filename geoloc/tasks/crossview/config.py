@@ -41,7 +41,7 @@ EVALUATION_KEYS = ("name", "module", "root", "split", "check_files", "max_val", 
 
 
 def config_nodes() -> dict[str, dict]:
-    """The defaults conf/ extends (geoloc/launch/schemas.py), from their one home: `backbone/vgg16` ... for every
+    """The defaults geoloc/conf/ extends (geoloc/launch/schemas.py), from their one home: `backbone/vgg16` ... for every
     registered component (its factory's signature), `dataset/<reader>` for every reader (the shared keys, then the
     reader's own), `model` and `gallery` (their dataclasses)."""
     nodes = {f"{registry.section(kind)}/{name}": registry.with_defaults(kind, {"name": name})

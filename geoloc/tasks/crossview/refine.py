@@ -1,6 +1,6 @@
 """Fine-grained localisation in the cross-view task: the refiner's config, its training items and its metrics.
 
-A run refines when its config has a `refiner` section (conf/refiner/<name>.yaml): the refiner's own keys go to its
+A run refines when its config has a `refiner` section (geoloc/conf/refiner/<name>.yaml): the refiner's own keys go to its
 registered factory (geoloc/models/refiners/), and the keys of RefineConfig say how it is trained and tested. With no
 `refiner` section nothing here runs and the task is retrieval alone.
 

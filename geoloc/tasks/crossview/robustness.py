@@ -1,6 +1,6 @@
 """One checkpoint under every test condition the field reports: field of view, known or unknown heading, a gallery
 padded with distractor tiles of other places, and another dataset. Each cell is evaluate.py's own path: its config
-composed from conf/evaluate.yaml with the condition's overrides (`dataset.fov=90 dataset.random_heading=true ...`),
+composed from geoloc/conf/evaluate.yaml with the condition's overrides (`dataset.fov=90 dataset.random_heading=true ...`),
 config.parse_evaluation, then run.score; nothing here ranks or scores.
 
 Conditions, in table order:

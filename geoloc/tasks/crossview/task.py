@@ -1,11 +1,11 @@
 """The cross-view geo-localization task: a Siamese of registered backbones and heads, a registered loss, optimizer
-and sampler (conf/ groups of the same names).
+and sampler (geoloc/conf/ groups of the same names).
 
 The paper's method (Li, Tu, Chen, Yu, "Multi-scale attention encoder for street-to-aerial image geo-localization",
 CAAI TIT 2023) is backbone=vgg16 head=msae loss=gms_triplet optim=adam: Adam lr 1e-4 (betas 0.9/0.999), StepLR /10
 every 80 epochs, 100 epochs, batch 64, alpha 10, MSAE's eq. 3 without an activation; the GMS queue's 1,024 entries
 are geoloc's choice (the paper gives no length). Sample4Geo's family is backbone=timm model.shared=true
-head=gap loss=infonce optim=adamw with a hard-sample sampler (conf/experiment/sample4geo.yaml).
+head=gap loss=infonce optim=adamw with a hard-sample sampler (geoloc/conf/experiment/sample4geo.yaml).
 """
 
 from __future__ import annotations

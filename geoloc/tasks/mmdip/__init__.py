@@ -3,7 +3,7 @@ Perception Space", Wu, Wang, Sun), as a task on the geoloc engine. See docs/mmdi
 
 `train(cfg, run_dir)` runs phase 1 -> phase 2 -> VPR evaluation; `evaluate(cfg, state)` scores the
 checkpoint cfg.ckpt (recall on `dataset=dynamic`, L1/L2/PSNR/SSIM on `dataset=emptycities`); `config_nodes()`
-gives the defaults conf/ extends. The package registers itself as the task `mmdip`; its modules declare the kinds
+gives the defaults geoloc/conf/ extends. The package registers itself as the task `mmdip`; its modules declare the kinds
 only it builds: `segmenter` (networks.py), `generator_loss` (generator_loss.py) and `mmdip_dataset` (readers.py).
 """
 

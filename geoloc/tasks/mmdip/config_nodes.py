@@ -1,4 +1,4 @@
-"""The defaults conf/ extends for task=mmdip (geoloc/launch/schemas.py stores them), from their one home."""
+"""The defaults geoloc/conf/ extends for task=mmdip (geoloc/launch/schemas.py stores them), from their one home."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Export a cross-view checkpoint's encoders: python export.py ckpt=outputs/.../best.pt [format=onnx] [out=DIR]
 [opset=N] [overwrite=true]. Writes query.onnx, reference.onnx and encoders.json (what each file expects)."""
 
-from geoloc.launch.entry_points import export as main  # composes geoloc/conf/export.yaml with the arguments
+from geoloc.entry_points import export as main  # composes geoloc/conf/export.yaml with the arguments
 
 if __name__ == "__main__":
     main()

@@ -6,7 +6,7 @@ Examples: python train.py dataset=cvusa dataset.root=/data/CVUSA
           torchrun --nproc_per_node=2 train.py trainer.device=cpu
 """
 
-from geoloc.launch.entry_points import train as main  # composes geoloc/conf/train.yaml with the arguments
+from geoloc.entry_points import train as main  # composes geoloc/conf/train.yaml with the arguments
 
 if __name__ == "__main__":
     main()

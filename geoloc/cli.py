@@ -1,7 +1,7 @@
 """The `geoloc` console script: `geoloc SUBCOMMAND key=value ...` (pyproject [project.scripts]).
 
 Every app is reachable from it:
-- train, evaluate, localize, export are the Hydra entry points of the package (geoloc/launch/entry_points.py,
+- train, evaluate, localize, export are the Hydra entry points of the package (geoloc/entry_points.py,
   composing geoloc/conf/), so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`, and both work from
   an installed wheel;
 - the other subcommands are modules with `USAGE` (text) and `main(args) -> exit code`, imported only when named,
@@ -13,9 +13,8 @@ from __future__ import annotations
 import importlib
 import sys
 
-from omegaconf import OmegaConf
-
-from geoloc.config import ConfigError, checked
+from geoloc.config import ConfigError, parse_keys  # noqa: F401  (parse_keys: its home was here)
+from geoloc.entry_points import VERBS
 
 SCRIPTS = {  # name: (the script at a checkout's root that runs the same entry point, what it does)
     "train": ("train.py", "train a task (the embedded default: cross-view on synthetic data)"),
@@ -45,8 +44,6 @@ def usage() -> str:
 
 def run_script(name: str, args: list[str]) -> int:
     """Run the entry point `name` as `python <script> args` would; its exit status."""
-    from geoloc.launch.entry_points import VERBS
-
     argv = sys.argv
     sys.argv = [f"geoloc {name}", *args]
     try:
@@ -59,15 +56,6 @@ def run_script(name: str, args: list[str]) -> int:
     finally:
         sys.argv = argv
     return 0
-
-
-def parse_keys(args: list[str], schema: type, command: str):
-    """key=value arguments (as Hydra takes them) -> a `schema` dataclass; a bad one raises ConfigError."""
-    for arg in args:
-        key, sep, _ = arg.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"'{arg}' is not key=value: geoloc {command} takes its settings as key=value")
-    return checked(OmegaConf.from_dotlist(args), schema, command)
 
 
 def main(argv: list[str] | None = None) -> int:

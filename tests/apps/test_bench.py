@@ -13,7 +13,7 @@ import yaml
 from geoloc.apps.bench.checkpoints import checkpoints
 from geoloc.apps.bench.command import bench, split_args
 from geoloc.apps.bench.published import matching, published
-from geoloc.apps.bench.test_sets import TEST_SETS, data_overrides
+from geoloc.apps.bench.bench_sets import TEST_SETS, data_overrides
 from geoloc.config import ConfigError
 from geoloc.launch import run
 

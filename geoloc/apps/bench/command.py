@@ -15,7 +15,7 @@ from geoloc.apps.bench import report
 from geoloc.apps.bench.checkpoints import checkpoints
 from geoloc.apps.bench.protocols import HEADINGS, PHOTO, protocols
 from geoloc.apps.bench.encode_once import score_protocols
-from geoloc.apps.bench.test_sets import ROOT_KEYS, TEST_SETS, data_overrides, test_set
+from geoloc.apps.bench.bench_sets import ROOT_KEYS, TEST_SETS, data_overrides, test_set
 from geoloc.apps.table_files import evaluate_config, refuse_out_that_is_no_folder, refuse_taken, write_whole
 from geoloc.config import ConfigError, checked
 

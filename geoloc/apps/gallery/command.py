@@ -27,7 +27,7 @@ class MergeKeys:
 
 
 def main(args: list[str]) -> int:
-    from geoloc.cli import parse_keys
+    from geoloc.config import parse_keys
     from geoloc.tasks.crossview import merge_shards
 
     if not args or args[0] != "merge":

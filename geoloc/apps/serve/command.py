@@ -65,7 +65,7 @@ class ServeConfig(QueryLimits):
 def main(args: list[str]) -> int:
     import uvicorn
 
-    from geoloc.cli import parse_keys
+    from geoloc.config import parse_keys
 
     cfg = parse_keys(args, ServeConfig, "serve")
     from geoloc.apps.localize import Localizer  # torch and the model code: only once the arguments are good

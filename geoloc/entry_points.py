@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 import geoloc.launch.hydra_hooks  # noqa: F401  (the schema nodes every geoloc/conf/ file extends, and ${pid:})
 from geoloc.launch.refusal import refusals_in_one_line
 
-CONF = "../conf"  # geoloc/conf, relative to this file as Hydra reads config_path
+CONF = "conf"  # geoloc/conf, relative to this file as Hydra reads config_path
 
 
 @hydra.main(version_base="1.3", config_path=CONF, config_name="train")

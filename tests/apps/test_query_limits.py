@@ -160,10 +160,10 @@ def test_health_answers_while_a_request_holds_the_network():
     release, started = threading.Event(), threading.Event()
 
     class Blocking(FakeLocalizer):
-        def localize(self, image, **kwargs):
+        def localize(self, image, *args, **kwargs):
             started.set()
             assert release.wait(30), "the test never released the request"
-            return super().localize(image, **kwargs)
+            return super().localize(image, *args, **kwargs)
 
     fake = Blocking()
     with serving(create_app(fake)) as url:

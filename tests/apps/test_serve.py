@@ -42,9 +42,9 @@ class FakeLocalizer:
     def info(self) -> dict:
         return {"checkpoint": "fake.pt", "gallery_size": 3, "dim": 8, "device": "cpu"}
 
-    def parse(self, fov=None, topk=None, heading=None, heading_prior=None, abstain=None):
+    def parse(self, **given):
         """The Localizer's parse of the settings as sent."""
-        return check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
+        return check_settings(**given, max_topk=self.limits.max_topk)
 
     def check(self, width, height, query, name="the image"):
         """The Localizer's check, on a panorama's canvas (rows H, columns W·360/fov)."""

@@ -127,7 +127,7 @@ class Localizer:
                    self.limits)
 
     def parse(self, **given) -> QuerySettings:
-        """The settings as sent (fov, topk, heading, heading_prior, abstain: numbers or text; None: the default),
+        """The settings as sent (QuerySettings' keys, e.g. fov, topk, heading: numbers or text; None: the default),
         parsed (check_settings, topk within max_topk) and made this localizer's query (`settings`): the door of a
         caller that has not parsed them itself, e.g. the service's form."""
         return self.settings(check_settings(**given, max_topk=self.limits.max_topk))
@@ -153,8 +153,8 @@ class Localizer:
                  path: Path | None = None, deadline: float | None = None, **given) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
         photo covering `fov` degrees of bearing, horizon band only. query: the settings as `settings` gives them;
-        left out, the settings `given` (fov, topk, heading, heading_prior, abstain, as QuerySettings names them)
-        are parsed by `parse`. heading: its bearing when known (degrees clockwise from north); "search" searches
+        left out, the settings `given` (as QuerySettings names them: fov, topk, heading, heading_prior, abstain,
+        refine) are parsed by `parse`. heading: its bearing when known (degrees clockwise from north); "search" searches
         `heading_steps` candidates. path: the file, to find the image among the gallery split's queries (its true
         position then comes with the answer). deadline: a time.monotonic() past which the search stops with
         QueryError (503) instead of encoding its next candidates."""
@@ -186,7 +186,7 @@ class Localizer:
                                     truth=self._truth(path, best), confidence=confidence,
                                     calibrated=confidence is not None,
                                     abstained=None if query.abstain is None else confidence < query.abstain)
-        if self.refines(query.fov):
+        if query.refine and self.refines(query.fov):
             self._refine(answer, image)
         return answer
 

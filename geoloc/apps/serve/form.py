@@ -10,7 +10,7 @@ from __future__ import annotations
 from fastapi import HTTPException
 from pydantic import BaseModel, Field
 
-from geoloc.apps.query import ABSTAIN, FOV, HEADING, HEADING_PRIOR, TOPK
+from geoloc.apps.query import ABSTAIN, FOV, HEADING, HEADING_PRIOR, REFINE, TOPK
 
 
 class QueryForm(BaseModel):
@@ -21,6 +21,7 @@ class QueryForm(BaseModel):
     heading: str | None = Field(None, description=HEADING)
     heading_prior: str | None = Field(None, description=HEADING_PRIOR)
     abstain: str | None = Field(None, description=ABSTAIN)
+    refine: str | None = Field(None, description=REFINE)
 
 
 FIELDS = tuple(QueryForm.model_fields)

@@ -6,16 +6,17 @@ A query's work grows with:
   photo makes a canvas 360 times its width, and OpenCV's remap (the IPT) takes fewer than 32,767 of either;
 - the candidate headings searched when the heading is unknown (heading_steps), one query-branch pass each.
 Each has a limit (QueryLimits). `check_size` runs on the image's header, before anything is decoded or allocated,
-and again on the decoded image (both through a Localizer's `check`); `check_settings` and `check_headings` check the
-settings. Past a limit, or on a bad setting, QueryError names the key, the value, the limit and what to do.
-`image_size` reads the header.
+and again on the decoded image (both through a Localizer's `check`). The settings are parsed once, at the door
+(localize.py's keys, the service's form), by `check_settings` into a QuerySettings that everything below trusts;
+`check_topk` and `check_headings` hold the limits on topk and heading_steps. Past a limit, or on a bad setting,
+QueryError names the key, the value, the limit and what to do. `image_size` reads the header.
 """
 
 from __future__ import annotations
 
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 from PIL import Image, UnidentifiedImageError
@@ -32,7 +33,10 @@ HEADING_PRIOR = ("how far, in degrees, the true bearing may lie from the given h
                  "search then tries only the candidate headings within heading ± heading_prior (needs heading)")
 ABSTAIN = ("a confidence threshold in [0, 1]: an answer whose confidence (the calibrated probability that its top-1 "
            "tile is right) is below it says it abstains; needs a calibrated gallery and a given heading")
-HINTS = {"fov": FOV, "topk": TOPK, "heading": HEADING, "heading_prior": HEADING_PRIOR, "abstain": ABSTAIN}
+REFINE = ("whether each top-k tile's position is refined inside the tile, where the checkpoint has a refiner and "
+          "the image is a panorama: true (the default) or false, for a faster answer with the tiles' own positions")
+HINTS = {"fov": FOV, "topk": TOPK, "heading": HEADING, "heading_prior": HEADING_PRIOR, "abstain": ABSTAIN,
+         "refine": REFINE}
 
 
 @dataclass
@@ -46,6 +50,10 @@ class QuerySettings:
     heading: Any = None
     heading_prior: float | None = None  # ± degrees around `heading` the search tries; None: heading taken as exact
     abstain: float | None = None  # answers less confident than this abstain; None: never
+    refine: bool = True  # refine the top-k tiles' positions where the checkpoint can (Localizer.refines)
+
+
+SETTINGS = tuple(f.name for f in fields(QuerySettings))  # the settings' keys, as localize.py and the form take them
 
 
 @dataclass
@@ -96,10 +104,19 @@ def _number(key: str, value) -> float:
     return number
 
 
+def _flag(key: str, value) -> bool:
+    if isinstance(value, bool):
+        return value
+    text = str(value).strip().lower()
+    if text not in ("true", "false", "1", "0", "yes", "no"):
+        raise _bad(key, value, "is not true or false")
+    return text in ("true", "1", "yes")
+
+
 def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_topk: int | None = None,
-                   heading_prior: Any = None, abstain: Any = None) -> QuerySettings:
+                   heading_prior: Any = None, abstain: Any = None, refine: Any = None) -> QuerySettings:
     """Settings as given (numbers, or text as a form sends them; None: the default) -> QuerySettings, or QueryError
-    naming the setting."""
+    naming the setting; topk is held to max_topk when it is given (check_topk)."""
     default = QuerySettings()
     number = default.fov if fov is None else _number("fov", fov)
     if not 0.0 < number <= 360.0:
@@ -114,9 +131,8 @@ def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_t
         if number < 1:
             raise _bad("topk", topk, "is below 1")
         topk = int(number)
-    if max_topk is not None and topk > max_topk:
-        raise QueryError("max_topk", f"topk={topk} is over the limit of {max_topk} references an answer lists "
-                                     "(max_topk): ask for fewer", 413)
+    if max_topk is not None:
+        check_topk(topk, max_topk)
     if heading is None or heading == "":
         heading = default.heading
     elif isinstance(heading, str) and heading.strip().lower() == SEARCH:
@@ -132,7 +148,15 @@ def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_t
     threshold = None if abstain is None or abstain == "" else _number("abstain", abstain)
     if threshold is not None and not 0.0 <= threshold <= 1.0:
         raise _bad("abstain", abstain, "is outside [0, 1]")
-    return QuerySettings(fov, topk, heading, prior, threshold)
+    refine = default.refine if refine is None or refine == "" else _flag("refine", refine)
+    return QuerySettings(fov, topk, heading, prior, threshold, refine)
+
+
+def check_topk(topk: int, max_topk: int) -> None:
+    """QueryError (413) when topk is over max_topk."""
+    if topk > max_topk:
+        raise QueryError("max_topk", f"topk={topk} is over the limit of {max_topk} references an answer lists "
+                                     "(max_topk): ask for fewer", 413)
 
 
 def check_headings(steps: int, limits: QueryLimits) -> int:

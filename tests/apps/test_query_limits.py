@@ -105,6 +105,7 @@ def test_limits_and_their_defaults_are_checked():
     ({"topk": 2.5}, "topk", "is not an integer"), ({"topk": 0}, "topk", "is below 1"),
     ({"heading": float("nan")}, "heading", "heading=nan is not a finite number"),
     ({"heading": "-inf"}, "heading", "is not a finite number"),
+    ({"refine": "maybe"}, "refine", "refine='maybe' is not true or false"),
 ])
 def test_one_check_of_the_settings_names_the_field(given, field, message):
     with pytest.raises(QueryError, match=message) as caught:
@@ -113,6 +114,8 @@ def test_one_check_of_the_settings_names_the_field(given, field, message):
     ok = check_settings(fov="90", topk="3", heading="-45.5")
     assert (ok.fov, ok.topk, ok.heading) == (90.0, 3, -45.5)
     assert check_settings(topk=7.0).topk == 7 and check_settings().fov == 360.0  # the defaults: QuerySettings'
+    assert check_settings(refine=" No ").refine is False and check_settings(refine=False).refine is False
+    assert check_settings().refine is True
 
 
 # ---- form fields once, strict decoding, /health, the time limit -------------------------------------------------
@@ -160,10 +163,10 @@ def test_health_answers_while_a_request_holds_the_network():
     release, started = threading.Event(), threading.Event()
 
     class Blocking(FakeLocalizer):
-        def localize(self, image, **kwargs):
+        def localize(self, image, *args, **kwargs):
             started.set()
             assert release.wait(30), "the test never released the request"
-            return super().localize(image, **kwargs)
+            return super().localize(image, *args, **kwargs)
 
     fake = Blocking()
     with serving(create_app(fake)) as url:

@@ -42,14 +42,18 @@ class FakeLocalizer:
     def info(self) -> dict:
         return {"checkpoint": "fake.pt", "gallery_size": 3, "dim": 8, "device": "cpu"}
 
-    def check(self, width, height, fov=None, topk=None, heading=None, name="the image", heading_prior=None,
-              abstain=None):
-        """The Localizer's check, on a panorama's canvas (rows H, columns W·360/fov)."""
-        settings = check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
-        check_size(name, width, height, settings.fov, (height, width * 360.0 / settings.fov), self.limits)
-        return settings
+    def parse(self, **given):
+        """The Localizer's parse of the settings as sent."""
+        return check_settings(**given, max_topk=self.limits.max_topk)
 
-    def localize(self, image, fov=360.0, topk=5, name=None, deadline=None, **known) -> dict:
+    def check(self, width, height, query, name="the image"):
+        """The Localizer's check, on a panorama's canvas (rows H, columns W·360/fov)."""
+        check_size(name, width, height, query.fov, (height, width * 360.0 / query.fov), self.limits)
+
+    def localize(self, image, query, name=None, deadline=None) -> dict:
+        fov, topk = query.fov, query.topk
+        known = {key: getattr(query, key) for key in ("heading", "heading_prior", "abstain")
+                 if getattr(query, key) is not None}
         with self._counter:
             self.calls += 1
             self.active += 1

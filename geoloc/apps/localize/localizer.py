@@ -22,6 +22,7 @@ heading is given exactly.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -119,45 +120,50 @@ class Localizer:
         return (query.heading != SEARCH and not query.heading_prior
                 and query.fov == condition.get("fov", 360.0))
 
-    def check(self, width: int, height: int, fov=None, topk=None, heading=None, name: str = "the image",
-              heading_prior=None, abstain=None) -> QuerySettings:
-        """A query's settings as given (numbers or text; None: the default) and its image's size, checked before
-        anything is decoded: the settings, or QueryError naming the setting or the limit (query.py)."""
-        settings = self.settings(fov, topk, heading, heading_prior, abstain)
-        check_size(name, width, height, settings.fov, self.encoder.canvas_shape(height, width, settings.fov, self.view),
+    def check(self, width: int, height: int, query: QuerySettings, name: str = "the image") -> None:
+        """QueryError (413) naming the limit when a W×H image of this query (as `settings` gives it) is over the
+        limits; run on an image's header, before anything is decoded (query.py)."""
+        check_size(name, width, height, query.fov, self.encoder.canvas_shape(height, width, query.fov, self.view),
                    self.limits)
-        return settings
 
-    def settings(self, fov=None, topk=None, heading=None, heading_prior=None, abstain=None) -> QuerySettings:
-        """A query's settings as given, checked against this gallery (abstain needs its confidence) without an
-        image: the settings, or QueryError naming the setting."""
-        settings = check_settings(fov, topk, heading, self.limits.max_topk, heading_prior, abstain)
-        if settings.heading is None:  # not given: as the checkpoint was trained
-            settings.heading = self.default_heading
-        if settings.abstain is not None and not self.calibrated_for(settings):
+    def parse(self, **given) -> QuerySettings:
+        """The settings as sent (QuerySettings' keys, e.g. fov, topk, heading: numbers or text; None: the default),
+        parsed (check_settings, topk within max_topk) and made this localizer's query (`settings`): the door of a
+        caller that has not parsed them itself, e.g. the service's form."""
+        return self.settings(check_settings(**given, max_topk=self.limits.max_topk))
+
+    def settings(self, query: QuerySettings) -> QuerySettings:
+        """The query as this checkpoint and gallery answer it: `query` as its door parsed it (check_settings); one
+        without a heading takes `default_heading`, and abstain is refused where the answer's confidence does not
+        hold (QueryError)."""
+        query = dataclasses.replace(query)  # the caller's own stays as it gave it
+        if query.heading is None:  # not given: as the checkpoint was trained
+            query.heading = self.default_heading
+        if query.abstain is not None and not self.calibrated_for(query):
             info = self.calibration_info()
             held = (f"its confidence is calibrated for {info['condition']}" if info["calibrated"] else
                     f"the gallery is uncalibrated: {info['why']}")
-            raise QueryError("abstain", f"abstain={settings.abstain:g} needs the answer's confidence, and {held}: "
+            raise QueryError("abstain", f"abstain={query.abstain:g} needs the answer's confidence, and {held}: "
                                         "give the image's heading (without heading_prior) at that fov, or leave "
                                         "abstain out")
-        return settings
+        return query
 
     @torch.no_grad()
-    def localize(self, image: np.ndarray, fov: float = 360.0, topk: int = 5, heading: float | str | None = None,
-                 name: str | None = None, path: Path | None = None, deadline: float | None = None,
-                 heading_prior: float | None = None, abstain: float | None = None) -> LocalizationResult:
+    def localize(self, image: np.ndarray, query: QuerySettings | None = None, *, name: str | None = None,
+                 path: Path | None = None, deadline: float | None = None, **given) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
-        photo covering `fov` degrees of bearing, horizon band only. heading: its bearing when known (degrees
-        clockwise from north); "search" searches `heading_steps` candidates; None: `default_heading`. path: the file, to find the image among
-        the gallery split's queries (its true position then comes with the answer). deadline: a time.monotonic()
-        past which the search stops with QueryError (503) instead of encoding its next candidates. heading_prior:
-        search only within ± this many degrees of `heading`. abstain: a confidence threshold (module docstring)."""
+        photo covering `fov` degrees of bearing, horizon band only. query: the settings as `settings` gives them;
+        left out, the settings `given` (as QuerySettings names them: fov, topk, heading, heading_prior, abstain,
+        refine) are parsed by `parse`. heading: its bearing when known (degrees clockwise from north); "search" searches
+        `heading_steps` candidates. path: the file, to find the image among the gallery split's queries (its true
+        position then comes with the answer). deadline: a time.monotonic() past which the search stops with
+        QueryError (503) instead of encoding its next candidates."""
         if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be an H×W×3 uint8 RGB array, got {getattr(image, 'shape', type(image))} "
                              f"{getattr(image, 'dtype', '')}")
-        query = self.check(image.shape[1], image.shape[0], fov, topk, heading, name or str(path or "the image"),
-                           heading_prior, abstain)
+        if query is None:
+            query = self.parse(**given)
+        self.check(image.shape[1], image.shape[0], query, name or str(path or "the image"))  # the decoded size
         given = None if query.heading == SEARCH else query.heading
         if query.heading_prior:
             given = headings_around(query.heading, query.heading_prior, self.heading_steps)
@@ -180,7 +186,7 @@ class Localizer:
                                     truth=self._truth(path, best), confidence=confidence,
                                     calibrated=confidence is not None,
                                     abstained=None if query.abstain is None else confidence < query.abstain)
-        if self.refines(query.fov):
+        if query.refine and self.refines(query.fov):
             self._refine(answer, image)
         return answer
 

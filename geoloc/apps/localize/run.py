@@ -16,10 +16,10 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from omegaconf import MISSING, DictConfig
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from geoloc.apps.localize.localizer import Localizer, check_street, read_street
-from geoloc.apps.query import QueryError, QueryLimits, QuerySettings, check_settings
+from geoloc.apps.query import SETTINGS, QueryError, QueryLimits, QuerySettings, check_settings, check_topk
 from geoloc.config import ConfigError, checked
 from geoloc.launch.run_log import run_log
 from geoloc.launch.rundir import claimed
@@ -29,7 +29,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 @dataclass
 class LocalizeConfig(QueryLimits, QuerySettings):
-    """localize.py's keys (geoloc/conf/localize.yaml extends this node: schema/localize): fov, topk and heading are
+    """localize.py's keys (geoloc/conf/localize.yaml extends this node: schema/localize): the query's settings are
     QuerySettings', the limits on one image QueryLimits' (geoloc/apps/query.py, the same keys as `geoloc serve`'s)."""
 
     ckpt: str = MISSING  # a checkpoint written by train.py
@@ -68,15 +68,21 @@ def refuse_out_holding_inputs(out: Path, images: list[Path]) -> None:
                           "another out= folder (or leave it out: a new folder under outputs/localize/)")
 
 
-def localize(section: DictConfig) -> list[dict]:
-    """Each image's answer as written to localize.jsonl (LocalizationResult.to_json)."""
-    keys = ("fov", "topk", "heading", "heading_prior", "abstain")
-    try:  # as the service checks its form fields: first as given (fov=abc, heading=nan), then against max_topk
-        check_settings(**{key: section.get(key) for key in keys})
-        cfg = checked(section, LocalizeConfig, "localize.py")
-        check_settings(**{key: getattr(cfg, key) for key in keys}, max_topk=cfg.max_topk)
+def parse(section: DictConfig) -> tuple[LocalizeConfig, QuerySettings]:
+    """localize.py's keys, checked once: the query settings first, as given (fov=abc names fov, as the service
+    names its form fields), then every key against LocalizeConfig, then topk against max_topk."""
+    try:
+        query = check_settings(**{key: section.get(key) for key in SETTINGS})
+        cfg = checked(OmegaConf.merge(section, vars(query)), LocalizeConfig, "localize.py")
+        check_topk(query.topk, cfg.max_topk)
     except QueryError as err:
         raise ConfigError(f"localize.py: {err}") from None
+    return cfg, query
+
+
+def localize(section: DictConfig) -> list[dict]:
+    """Each image's answer as written to localize.jsonl (LocalizationResult.to_json)."""
+    cfg, given = parse(section)
     images = images_of(Path(cfg.image))
     out = Path(cfg.out)
     refuse_out_holding_inputs(out, images)
@@ -85,21 +91,16 @@ def localize(section: DictConfig) -> list[dict]:
         # start leaves none; the log holds what the run printed
         localizer = Localizer.load(cfg.ckpt, cfg.gallery, device=cfg.device, heading_steps=cfg.heading_steps,
                                    limits=cfg)
-        query = {"fov": cfg.fov, "topk": cfg.topk, "heading": cfg.heading, "heading_prior": cfg.heading_prior,
-                 "abstain": cfg.abstain}
         try:  # abstain needs a calibrated gallery: refused before any image is read
-            localizer.settings(**query)
+            query = localizer.settings(given)
         except QueryError as err:
             raise ConfigError(f"localize.py: {err}") from None
-        def check(path: Path):  # the query's check of an image's size, naming its file
-            return lambda width, height: localizer.check(width, height, name=str(path), **query)
-
         for path in images:  # every header before the first answer: an image the query cannot take stops no run midway
-            check_street(path, check(path))
+            check_street(path, lambda width, height: localizer.check(width, height, query, name=str(path)))
         with open(out / "localize.jsonl", "a") as lines:
             for path in images:
-                image = read_street(path, check(path))
-                result = localizer.localize(image, path=path, **query)
+                image = read_street(path)
+                result = localizer.localize(image, query, path=path)  # which checks the decoded image's size
                 if cfg.picture:
                     from geoloc.apps.localize.picture import localization_figure
 

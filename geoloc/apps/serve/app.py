@@ -15,12 +15,15 @@ No response carries CORS headers: a page of another origin cannot read the answe
 Content-Security-Policy and frame protection (headers.py). FastAPI's /docs and /redoc, which load scripts from a
 CDN, are off unless `api_docs`; /openapi.json describes the API.
 
-`localizer` is anything with `check(width, height, fov=, topk=, heading=, heading_prior=, abstain=, name=)` (the
-settings as sent, checked with the image's size before it is decoded: a QuerySettings, or QueryError naming the
-setting or the limit), `localize(image, fov=, topk=, name=, deadline=)` (image: H×W×3 uint8 RGB; returns a
-LocalizationResult, whose to_json() is the answer, or a JSON-serialisable dict; it gets `heading=`,
-`heading_prior=` and `abstain=` only when the request gives them), `info()` (a JSON-serialisable dict) and, for
-/tiles, `tile(row)` (the file of gallery row `row`, or QueryError), e.g. geoloc.apps.localize.Localizer.
+The settings are read once, at the door: FastAPI fills a QueryForm (form.py, a Pydantic model) from the form
+fields and one from the query parameters, and `localizer.parse(**sent)` parses them into the QuerySettings that
+the rest of the request trusts.
+`localizer` is anything with `parse(fov=, topk=, heading=, heading_prior=, abstain=)` (the settings as sent, text
+or None: a QuerySettings, or QueryError naming the setting), `check(width, height, query, name=)` (the image's
+size against the limits, before it is decoded: QueryError naming the limit), `localize(image, query, name=,
+deadline=)` (image: H×W×3 uint8 RGB; returns a LocalizationResult, whose to_json() is the answer, or a
+JSON-serialisable dict), `info()` (a JSON-serialisable dict) and, for /tiles, `tile(row)` (the file of gallery row
+`row`, or QueryError), e.g. geoloc.apps.localize.Localizer.
 Bad input gets a 4xx whose `detail` says what is wrong and what to do; a failure inside the localizer gets a 500
 with its message. Neither stops the server.
 """
@@ -38,8 +41,10 @@ from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request,
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 
-from geoloc.apps.query import ABSTAIN, FOV, HEADING, HEADING_PRIOR, TOPK, QueryError
+from geoloc.apps.query import QueryError
 from geoloc.apps.serve.body_limit import BodyLimit
+from geoloc.apps.serve.form import FIELDS, QueryForm, sent_settings
+from geoloc.apps.serve.form import HINTS as FIELD_HINTS
 from geoloc.apps.serve.headers import DOCS_POLICY, SecurityHeaders
 from geoloc.apps.serve.page import add_page
 from geoloc.apps.serve.upload import SEND, decode_upload
@@ -48,9 +53,7 @@ log = logging.getLogger("geoloc.apps.serve")
 
 MAX_BYTES = 32 * 2**20
 MAX_SECONDS = 10.0  # a query's turn at the network: past it, its heading search stops with a 503
-HINTS = {"image": SEND, "fov": FOV, "topk": TOPK, "heading": HEADING, "heading_prior": HEADING_PRIOR,
-         "abstain": ABSTAIN}
-SETTINGS = ("fov", "topk", "heading", "heading_prior", "abstain")
+HINTS = {"image": SEND, **FIELD_HINTS}
 
 
 class Service(FastAPI):
@@ -90,36 +93,22 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
     # a sync endpoint: FastAPI runs it in its threadpool, so the event loop stays free while the network runs
     @app.post("/localize", dependencies=[Depends(each_field_once)])
     def localize(image: Annotated[UploadFile, File(description="the street image: JPEG or PNG")],
-                 fov: Annotated[str | None, Form(description=FOV)] = None,
-                 topk: Annotated[str | None, Form(description=TOPK)] = None,
-                 heading: Annotated[str | None, Form(description=HEADING)] = None,
-                 heading_prior: Annotated[str | None, Form(description=HEADING_PRIOR)] = None,
-                 abstain: Annotated[str | None, Form(description=ABSTAIN)] = None,
-                 fov_query: Annotated[str | None, Query(alias="fov", description=FOV)] = None,
-                 topk_query: Annotated[str | None, Query(alias="topk", description=TOPK)] = None,
-                 heading_query: Annotated[str | None, Query(alias="heading", description=HEADING)] = None,
-                 heading_prior_query: Annotated[str | None, Query(alias="heading_prior",
-                                                                  description=HEADING_PRIOR)] = None,
-                 abstain_query: Annotated[str | None, Query(alias="abstain", description=ABSTAIN)] = None,
-                 ) -> Response:
-        given = {"fov": (fov, fov_query), "topk": (topk, topk_query), "heading": (heading, heading_query),
-                 "heading_prior": (heading_prior, heading_prior_query), "abstain": (abstain, abstain_query)}
-        where = {key: "query parameter" if form is None and query is not None else "form field"
-                 for key, (form, query) in given.items()}
-        sent = {key: one_of(key, form, query) for key, (form, query) in given.items()}
+                 form: Annotated[QueryForm, Form()], params: Annotated[QueryForm, Query()]) -> Response:
+        sent, where = sent_settings(form, params)
         filename = image.filename or "image"
+        try:
+            query = localizer.parse(**sent)  # the door: parsed once, trusted below
+        except QueryError as err:
+            raise worded(err, where, max_seconds) from None
         with one_at_a_time:
             deadline = time.monotonic() + max_seconds
             try:
-                rgb, query = decode_upload(image.file.read(), filename, lambda width, height: localizer.check(
-                    width, height, name=f"the upload {filename!r}", **sent))
+                rgb, _ = decode_upload(image.file.read(), filename, lambda width, height: localizer.check(
+                    width, height, query, name=f"the upload {filename!r}"))
             except QueryError as err:
                 raise worded(err, where, max_seconds) from None
-            known = {key: getattr(query, key) for key in ("heading", "heading_prior", "abstain")
-                     if getattr(query, key) is not None}
             try:
-                result = localizer.localize(rgb, fov=query.fov, topk=query.topk, name=image.filename,
-                                            deadline=deadline, **known)
+                result = localizer.localize(rgb, query, name=image.filename, deadline=deadline)
                 body = json.dumps(result.to_json() if hasattr(result, "to_json") else result, allow_nan=False)
             except QueryError as err:
                 raise worded(err, where, max_seconds) from None
@@ -132,22 +121,16 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
     return app
 
 
-def one_of(name: str, form_value, query_value):
-    if form_value is not None and query_value is not None:
-        raise HTTPException(422, f"{name} is given both as a form field and as a query parameter: give it once")
-    return query_value if form_value is None else form_value
-
-
 async def each_field_once(request: Request) -> None:
     """A form field or query parameter given twice, or one this service does not take, is a 422 naming it: a form
     parser keeps only the last of repeated values, so the answer would silently use one of them."""
     form = await request.form()  # FastAPI has parsed it for the endpoint's fields: this is that copy
     for where, items, takes in (("form field", form.multi_items(), HINTS),
-                                ("query parameter", request.query_params.multi_items(), SETTINGS)):
+                                ("query parameter", request.query_params.multi_items(), FIELDS)):
         for key, count in Counter(key for key, _ in items).items():
             if key not in takes:
                 raise HTTPException(422, f"unknown {where} {key!r}: /localize takes the file field image and "
-                                         f"{', '.join(SETTINGS)} (form fields or query parameters)")
+                                         f"{', '.join(FIELDS)} (form fields or query parameters)")
             if count > 1:
                 raise HTTPException(422, f"{where} {key!r} is given {count} times: give it once ({HINTS[key]})")
 

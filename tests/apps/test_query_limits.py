@@ -206,7 +206,7 @@ def test_the_localizer_checks_before_it_allocates_and_encodes_a_few_headings_at_
     encode = loc.encoder.encode_street
     monkeypatch.setattr(loc.encoder, "encode_street", lambda x: batches.append(len(x)) or encode(x))
     image = localizer_module.read_street(root / "streetview/panos/0000013.jpg")
-    answer = loc.localize(image, topk=3)
+    answer = loc.localize(image, topk=3, heading="search")  # the search: this checkpoint would answer at north
     assert batches == [12, 8]  # 20 candidates, CANDIDATES_PER_PASS at a time
     inputs, _ = loc.encoder.street_inputs(image, 360.0, None, 20)
     scores = (encode(inputs) @ loc.index._descriptors.t()).max(dim=0).values  # every candidate in one pass

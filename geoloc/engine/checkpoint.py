@@ -6,6 +6,7 @@ system has none, a copy of) the last.pt written in the same epoch."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -28,17 +29,12 @@ def save_atomic(obj: dict, path: str | Path) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
+    with renamed_into(tmp, path):
         os.fchmod(fd, 0o666 & ~umask())  # mkstemp makes 0600; a checkpoint gets the mode any new file would
         with os.fdopen(fd, "wb") as f:
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def link_atomic(source: str | Path, path: str | Path) -> None:
@@ -47,13 +43,21 @@ def link_atomic(source: str | Path, path: str | Path) -> None:
     fsynced copy."""
     source, path = Path(source), Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    try:
+    with renamed_into(tmp, path):
         try:
             os.link(source, tmp)
         except OSError:  # no hard links here (some network and FUSE file systems): a copy, made durable
             shutil.copyfile(source, tmp)
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
+
+
+@contextlib.contextmanager
+def renamed_into(tmp: str | Path, path: Path):
+    """What the block writes to `tmp` becomes `path` in one rename; a failure removes `tmp` and leaves `path` as it
+    was."""
+    try:
+        yield
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -1,5 +1,5 @@
 """Evaluation: retrieval recall and the gallery index (segmentation and image scores live beside them)."""
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.search_index import GalleryIndex
 from geoloc.eval.image import image_scores
 from geoloc.eval.recall import recall_at_k
 from geoloc.eval.segmentation import segmentation_scores

@@ -22,7 +22,7 @@ import torch
 from geoloc.data.relevance import Relevance
 from geoloc.eval.candidates import rank_candidates
 from geoloc.eval.descriptors import checked_pair
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.search_index import GalleryIndex
 from geoloc.eval.keys import KeySet
 from geoloc.eval.scoring import check_chunk, rank, relevant_scores
 

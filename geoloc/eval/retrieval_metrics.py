@@ -29,7 +29,7 @@ from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.average_precision import AP_KEYS, average_precision
 from geoloc.eval.candidates import rank_candidates
 from geoloc.eval.descriptors import as_float_tensor, checked_pair
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.search_index import GalleryIndex
 from geoloc.eval.geo_error import METRE_KEYS, latlon_array, metre_errors, metre_summary
 from geoloc.eval.keys import KeySet, collapsed
 from geoloc.eval.recall import HIT_RATE_KEYS, check_ks, hit_rate, one_percent_k, recall_keys, recall_summary

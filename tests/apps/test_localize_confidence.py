@@ -12,7 +12,7 @@ from geoloc.datasets.cvusa import cvusa
 from geoloc.tasks.crossview.datasets import CrossViewPairs
 from geoloc.tasks.crossview.heading import query_inputs
 from geoloc.tasks.crossview.transforms import normalise
-from geoloc.tasks.crossview.confidence import NO_HOLDOUT
+from geoloc.gallery.confidence import NO_HOLDOUT
 from geoloc.tasks.crossview.views import headings_around
 from helpers.calibrated import KNOWN, calibrated_copy
 from test_localize import brute_force, gallery  # noqa: F401  (gallery: a fixture)

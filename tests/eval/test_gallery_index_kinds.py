@@ -190,7 +190,7 @@ def test_build_index_auto_switches_to_pq_refine_at_the_threshold(easy):
 
 
 def test_query_blocks_give_the_one_call_result(easy, monkeypatch):
-    import geoloc.eval.gallery as gallery_mod
+    import geoloc.eval.search_index as gallery_mod
 
     query, reference = easy
     index = GalleryIndex(DIM, backend="faiss", kind="pq_refine", **SMALL).add(reference)

@@ -274,7 +274,7 @@ def test_cuda_tensors_give_the_cpu_numbers():
 
 @needs_faiss
 def test_faiss_add_in_blocks_keeps_row_numbers(monkeypatch):
-    import geoloc.eval.gallery as gallery_mod
+    import geoloc.eval.search_index as gallery_mod
 
     monkeypatch.setattr(gallery_mod, "_ADD_BLOCK", 7)
     query, ref = descriptors(10, 50, 8, noise=0.3, seed=10)

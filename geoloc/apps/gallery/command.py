@@ -1,5 +1,5 @@
 """`geoloc gallery merge SHARD_DIR... out=DIR [overwrite=true]`: one gallery from the shards that independent jobs
-encoded (geoloc/tasks/crossview/gallery_shards.py; docs/distributed.md)."""
+encoded (geoloc/gallery/shards.py; docs/distributed.md)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ class MergeKeys:
 
 def main(args: list[str]) -> int:
     from geoloc.config import parse_keys
-    from geoloc.tasks.crossview import merge_shards
+    from geoloc.gallery import merge_shards
 
     if not args or args[0] != "merge":
         raise ConfigError(f"unknown gallery action {args[0] if args else '(none)'!r}: geoloc gallery merge ...")

@@ -1,7 +1,7 @@
 """One street image in, a position and a heading out: a checkpoint's query branch against a saved gallery.
 
 The gallery is what `python evaluate.py ckpt=... gallery.save=DIR` writes (geoloc/tasks/crossview/gallery.py and
-places.py): the reference descriptors, where each reference is, and the split's queries. The heading is unknown in
+geoloc/gallery/places.py): the reference descriptors, where each reference is, and the split's queries. The heading is unknown in
 general, so `heading=search` encodes the image at K candidate headings on the 360° canvas
 (geoloc/tasks/crossview/views.py) and each reference keeps its best-scoring candidate: the score ranks the
 references, the candidate is the heading estimate (a circular correlation through the query encoder, DSM-style).
@@ -38,9 +38,10 @@ from geoloc.data.io import read_rgb
 from geoloc.data.relevance import Relevance
 from geoloc.eval.calibration import Calibrator, retrieval_features
 from geoloc.eval.candidates import merge_headings, rank_candidates
-from geoloc.eval.gallery import GalleryIndex
-from geoloc.tasks.crossview import (POSITION_KEYS, TOP1, WITHIN_5M, CrossViewEncoder, LocalizationResult,
-                                    calibrators, open_gallery, refine_features, refiner_calibrator)
+from geoloc.eval.search_index import GalleryIndex
+from geoloc.gallery import POSITION_KEYS, LocalizationResult, open_gallery
+from geoloc.gallery.confidence import TOP1, WITHIN_5M, calibrators, refine_features, refiner_calibrator
+from geoloc.tasks.crossview import CrossViewEncoder
 from geoloc.tasks.crossview.views import headings_around
 
 CANDIDATES_PER_PASS = 12  # candidate headings encoded per forward pass: bounds the activations of a heading search

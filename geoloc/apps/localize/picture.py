@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 
 from geoloc.apps.localize.localizer import _tile  # noqa: E402
 from geoloc.data.geo import latlon_to_offset  # noqa: E402
-from geoloc.tasks.crossview import POSITION_KEYS, LocalizationResult  # noqa: E402
+from geoloc.gallery import POSITION_KEYS, LocalizationResult  # noqa: E402
 
 MAP_POINTS = 20_000  # grey gallery points drawn at most (a 1M gallery is subsampled)
 NEIGHBOURHOOD_M = 5_000.0  # the map shows candidates this close to its centre

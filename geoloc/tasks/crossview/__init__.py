@@ -16,11 +16,11 @@ import sys
 from geoloc import registry
 from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
-from geoloc.tasks.crossview.confidence import TOP1, WITHIN_5M, calibrators, refine_features, refiner_calibrator
-from geoloc.tasks.crossview.gallery_folder import SavedGallery, open_gallery
-from geoloc.tasks.crossview.gallery_shards import merge_shards
-from geoloc.tasks.crossview.localization import LocalizationResult
-from geoloc.tasks.crossview.places import POSITION_KEYS, Places, read_places
+from geoloc.gallery.confidence import TOP1, WITHIN_5M, calibrators, refine_features, refiner_calibrator
+from geoloc.gallery.folder import SavedGallery, open_gallery
+from geoloc.gallery.shards import merge_shards
+from geoloc.gallery.answer import LocalizationResult
+from geoloc.gallery.places import POSITION_KEYS, Places, read_places
 from geoloc.tasks.crossview.run import Run, build_run, evaluate, sweep_metric, train
 
 registry.register("task", "crossview", sys.modules[__name__])

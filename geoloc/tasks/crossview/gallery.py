@@ -7,12 +7,12 @@ A gallery too large for one job is built in parts (docs/distributed.md): the cod
 (`gallery.train_only=true gallery.save=CODEBOOK`: the trained quantisers, no rows, from the references
 `training_rows` picks), then each of `gallery.num_shards` jobs encodes its contiguous block of references
 (`gallery.shard_index=i gallery.codebook=CODEBOOK gallery.save=SHARD_i`), then `geoloc gallery merge SHARD_0 ...
-out=DIR` joins them (gallery_shards.py). A kind that trains nothing (flat) needs no codebook.
+out=DIR` joins them (geoloc/gallery/shards.py). A kind that trains nothing (flat) needs no codebook.
 
 DIR holds `gallery.pt` (GalleryIndex.save), `gallery.json` (what it was built from, and the reference spread) and
-the places (`references.jsonl`, `queries.jsonl`: geoloc/tasks/crossview/places.py), which localize.py reads. It is
+the places (`references.jsonl`, `queries.jsonl`: geoloc/gallery/places.py), which localize.py reads. It is
 written whole or not at all, an existing gallery is replaced only with `gallery.overwrite=true`, and a gallery is
-loaded only by the weights that built it, for the split it was built from (gallery_folder.py).
+loaded only by the weights that built it, for the split it was built from (geoloc/gallery/folder.py).
 Gallery row j is the split's reference j, so the queries must come from the split the gallery was built on; they
 are scored against the split's relevance (`geoloc.eval.retrieval_metrics.index_metrics`). With `kind=flat` the
 stored vectors go through the scorer itself, so every number equals the exact evaluation, AP included; approximate
@@ -40,15 +40,15 @@ from geoloc.tasks.crossview.datasets import EvalData, holdout_rule
 from geoloc.engine import distributed as dist
 from geoloc.engine.sampling import split_key
 from geoloc.eval.descriptors import check_descriptors, descriptor_spread, require_finite
-from geoloc.eval.gallery import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss, sub_quantisers,
+from geoloc.eval.search_index import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss, sub_quantisers,
                                  training_points, training_rows)
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
 from geoloc.eval.scoring import top_k
-from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, TOP1, across_jobs, calibrators, confidence_report,
+from geoloc.gallery.confidence import (NO_HOLDOUT, TOP1, across_jobs, calibrators, confidence_report,
                                                fit_top1, index_answers, uncalibrated, with_positives, with_refiner)
 from geoloc.tasks.crossview.encode import encode, encode_images
-from geoloc.tasks.crossview.gallery_folder import open_codebook, open_gallery, save_gallery
+from geoloc.gallery.folder import open_codebook, open_gallery, save_gallery
 from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_refiner
 
 
@@ -199,7 +199,7 @@ def evaluate(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig, 
              held_out: EvalData | None = None, fov: float = 360.0, run_dir: Path | None = None) -> dict:
     """Build-and-save or load the gallery, then score the split's queries against it. `meta`: what built it, as
     gallery.json records it: `ckpt`, `model_fingerprint` (of the task's weights) and `dataset` (the reader).
-    held_out: the labelled queries a saved gallery's confidence is fitted on (confidence.py; None: uncalibrated),
+    held_out: the labelled queries a saved gallery's confidence is fitted on (geoloc/gallery/confidence.py; None: uncalibrated),
     seen at field of view `fov`. A calibrated gallery adds `ece_top1` and writes run_dir/confidence.png."""
     split = data.split
     if cfg.train_only or cfg.num_shards > 1 or cfg.codebook:
@@ -313,7 +313,7 @@ def shard_calibration(task, engine, held_out: EvalData | None, batch_size: int) 
 def fitted_confidence(task, engine, held_out: EvalData | None, batch_size: int, reference: torch.Tensor,
                       split, fov: float) -> dict:
     """calibration.json's record: the top-1 confidence fitted on the held-out queries against this gallery's
-    references (confidence.py), or why there is none; with a refiner, its "within_5m" too
+    references (geoloc/gallery/confidence.py), or why there is none; with a refiner, its "within_5m" too
     (refine_confidence.py)."""
     held = None if held_out is None else encode_split(task, engine, held_out, batch_size,
                                                       refine=task.refiner is not None)

@@ -36,7 +36,7 @@ from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, 
 
 STAGES = ("refine", "joint")
 METRE_LABELS = "metre_labels"  # the metrics' key that names the label set behind their metres (tile_labels)
-RADIUS_M = 5.0  # the refined answer's confidence is P(error <= RADIUS_M) (confidence.py's "within_5m")
+RADIUS_M = 5.0  # the refined answer's confidence is P(error <= RADIUS_M) (geoloc/gallery/confidence.py's "within_5m")
 log = logging.getLogger(__name__)
 
 
@@ -301,7 +301,7 @@ class TileAnswers(NamedTuple):
 def whole_tile_answers(refiner, refine: RefineConfig, split: RetrievalSplit, candidates: torch.Tensor,
                        query_maps: torch.Tensor, reference_maps: torch.Tensor, queries=None) -> TileAnswers:
     """Each of `queries` (default: every query a tile shows, `shown_queries`) refined in every tile that holds it
-    (tile_pairs). What the "within_5m" confidence is fitted on and scored against (confidence.py), and the
+    (tile_pairs). What the "within_5m" confidence is fitted on and scored against (geoloc/gallery/confidence.py), and the
     whole-tile metres."""
     if split.reference_metres_per_px is None:
         raise ValueError(f"{split.name}: its tiles have no metres per pixel, so a metre error has no meaning")

@@ -17,7 +17,7 @@ from pathlib import Path
 from geoloc.engine import distributed as dist
 from geoloc.engine.checkpoint import weights_fingerprint
 from geoloc.eval.calibration import Calibrator
-from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, WITHIN_5M, confidence_report, fit_within,
+from geoloc.gallery.confidence import (NO_HOLDOUT, WITHIN_5M, confidence_report, fit_within,
                                                refine_features, refiner_calibrator)
 from geoloc.tasks.crossview.datasets import holdout_rule
 from geoloc.tasks.crossview.refine import RADIUS_M, RefineConfig, TileAnswers, fine_metrics, whole_tile_answers

@@ -18,7 +18,7 @@ from geoloc.tasks.crossview import gallery
 from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
                                            parse_evaluation, parse_training)
 from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, calibration_data, known_heading
-from geoloc.tasks.crossview.gallery_folder import check_target
+from geoloc.gallery.folder import check_target
 from geoloc.tasks.crossview.legacy import is_old_layout, upgraded_config, upgraded_state, upgraded_refiner
 from geoloc.tasks.crossview.refine import METRE_LABELS
 from geoloc.tasks.crossview.task import CrossViewTask

@@ -1,5 +1,5 @@
 """A saved gallery's folder: bound to the weights and the split that built it, written whole or not at all, never
-replaced unless asked, and every file checked on load with the file named (geoloc/tasks/crossview/gallery_folder.py).
+replaced unless asked, and every file checked on load with the file named (geoloc/gallery/folder.py).
 The gallery path runs on given descriptors: no network, no images."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval import recall_at_k
-from geoloc.tasks.crossview import gallery_folder, open_gallery
+from geoloc.gallery import folder as gallery_folder
+from geoloc.tasks.crossview import open_gallery
 
 from helpers.calibrated import KNOWN
 from helpers.gallery_runs import META, gallery_evaluate, pairs_split

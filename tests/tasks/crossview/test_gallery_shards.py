@@ -1,4 +1,4 @@
-"""A gallery built across jobs: a codebook trained once, shards encoded apart, one merge (gallery_shards.py) that
+"""A gallery built across jobs: a codebook trained once, shards encoded apart, one merge (geoloc/gallery/shards.py) that
 gives the one-job gallery, and refuses shards that are missing, doubled or of another gallery. On given
 descriptors: no network, no images."""
 
@@ -13,8 +13,8 @@ import torch
 from geoloc.cli import main as geoloc
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview import open_gallery
-from geoloc.tasks.crossview import gallery_shards
-from geoloc.tasks.crossview.gallery_shards import merge_shards
+from geoloc.gallery import shards as gallery_shards
+from geoloc.gallery.shards import merge_shards
 
 from helpers.gallery_runs import META, gallery_evaluate, pairs_split
 

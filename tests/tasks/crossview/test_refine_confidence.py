@@ -15,7 +15,7 @@ from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.calibration import expected_calibration_error, fit_calibrator
 from geoloc.models.refiners import Refinement
 from geoloc.tasks.crossview import gallery as crossview_gallery
-from geoloc.tasks.crossview.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1, WITHIN_5M, calibrators,
+from geoloc.gallery.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1, WITHIN_5M, calibrators,
                                                fit_within, refine_features, with_refiner)
 from geoloc.tasks.crossview.datasets import EvalData
 from geoloc.tasks.crossview.gallery import GalleryConfig
@@ -288,7 +288,7 @@ def test_a_gallery_merged_from_shards_keeps_the_refiners_confidence_and_says_why
     why."""
     from geoloc.apps.localize import Localizer
     from geoloc.cli import main as geoloc
-    from geoloc.tasks.crossview.confidence import ACROSS_JOBS
+    from geoloc.gallery.confidence import ACROSS_JOBS
 
     (tmp_path / "run").mkdir()
     one_job = tmp_path / "one_job"

@@ -93,7 +93,7 @@ def test_the_localizer_refines_its_topk_in_parts_with_the_one_batch_answer(tmp_p
     import cv2
     from geoloc.apps.localize import Localizer
     from geoloc.tasks.crossview import LocalizationResult
-    from geoloc.tasks.crossview.places import Places
+    from geoloc.gallery.places import Places
 
     encoder = encoder_of()
     rng = np.random.default_rng(1)

@@ -14,7 +14,7 @@ from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import run
 from geoloc.synthetic import generate
-from geoloc.tasks.crossview.confidence import calibrators, fit_within, refine_features
+from geoloc.gallery.confidence import calibrators, fit_within, refine_features
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
 
 from conftest import TINY, compose_evaluate, compose_train

@@ -31,7 +31,7 @@ from geoloc.data.relevance import Relevance
 from geoloc.eval.calibration import (RETRIEVAL_FEATURES, Calibrator, coverage_accuracy, expected_calibration_error,
                                      fit_calibrator, retrieval_features)
 from geoloc.eval.candidates import rank_candidates
-from geoloc.eval.gallery import GalleryIndex
+from geoloc.eval.search_index import GalleryIndex
 from geoloc.eval.scoring import rank
 
 TOP1 = "top1"

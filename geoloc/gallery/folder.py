@@ -1,7 +1,7 @@
 """A saved gallery's folder: written whole or not at all, and opened only by what it was built for.
 
 `python evaluate.py ckpt=... gallery.save=DIR` writes into DIR:
-- gallery.pt: the index (geoloc.eval.gallery.GalleryIndex.save);
+- gallery.pt: the index (geoloc.eval.search_index.GalleryIndex.save);
 - gallery.json: what built it: the weights' `model_fingerprint` (engine/checkpoint.py) and the `ckpt` path, the
   `dataset` reader, the `split`, its absolute `root` and `references_sha256` (the ordered reference paths,
   places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
@@ -43,9 +43,9 @@ from pathlib import Path
 from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine.checkpoint import file_sha256, umask
-from geoloc.eval.gallery import GalleryIndex, faiss_file
-from geoloc.tasks.crossview.confidence import check_record
-from geoloc.tasks.crossview.places import Places, read_places, split_record, write_places
+from geoloc.eval.search_index import GalleryIndex, faiss_file
+from geoloc.gallery.confidence import check_record
+from geoloc.gallery.places import Places, read_places, split_record, write_places
 
 INFO, INDEX, CALIBRATION = "gallery.json", "gallery.pt", "calibration.json"
 # gallery.json's fields and their JSON types ("positions" is null or a string, checked by read_places)

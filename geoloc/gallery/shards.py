@@ -22,11 +22,11 @@ from pathlib import Path
 
 from geoloc.config import ConfigError
 from geoloc.engine.checkpoint import file_sha256
-from geoloc.eval.gallery import GalleryIndex, faiss_file
-from geoloc.tasks.crossview.confidence import across_jobs
-from geoloc.tasks.crossview.gallery_folder import (INDEX, INFO, read_calibration, read_info, write_calibration,
+from geoloc.eval.search_index import GalleryIndex, faiss_file
+from geoloc.gallery.confidence import across_jobs
+from geoloc.gallery.folder import (INDEX, INFO, read_calibration, read_info, write_calibration,
                                                    write_gallery_folder)
-from geoloc.tasks.crossview.places import reference_paths_sha256
+from geoloc.gallery.places import reference_paths_sha256
 
 # what every shard of one gallery shares: the weights, the split, the index and its codebook
 SHARED = ("model_fingerprint", "dataset", "split", "root", "references_sha256", "query_view", "positions", "dim",

@@ -93,16 +93,19 @@ def evaluate(cfg: DictConfig) -> dict:
     from geoloc.engine import checkpoint
 
     run_dir = OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False)
-    with claimed(run_dir, role="evaluation") if run_dir else contextlib.nullcontext(), run_log(run_dir, "evaluate"):
-        refuse_existing_metrics_out(cfg)
-        state = checkpoint.load(cfg.ckpt)
-        stored = OmegaConf.create(state.get("config") or "{}")
-        metrics = find_task(stored.get("task")).evaluate(cfg, state)
-        if cfg.get("metrics_out") and dist.is_main():
-            write_metrics(Path(cfg.metrics_out), metrics, overwrite=cfg.get("metrics_out_overwrite", False))
-        if run_dir and dist.is_main():
-            write_metrics(Path(run_dir) / RUN_METRICS, metrics, overwrite=True)
-        return metrics
+    try:
+        with claimed(run_dir, role="evaluation") if run_dir else contextlib.nullcontext(), run_log(run_dir, "evaluate"):
+            refuse_existing_metrics_out(cfg)
+            state = checkpoint.load(cfg.ckpt)
+            stored = OmegaConf.create(state.get("config") or "{}")
+            metrics = find_task(stored.get("task")).evaluate(cfg, state)
+            if cfg.get("metrics_out") and dist.is_main():
+                write_metrics(Path(cfg.metrics_out), metrics, overwrite=cfg.get("metrics_out_overwrite", False))
+            if run_dir and dist.is_main():
+                write_metrics(Path(run_dir) / RUN_METRICS, metrics, overwrite=True)
+            return metrics
+    finally:  # a torchrun launch leaves its process group before exit, as train() does: a rank that exits with it
+        dist.cleanup()  # alive can abort in the group's threads ("terminate called without an active exception")
 
 
 def refuse_existing_metrics_out(cfg: DictConfig) -> None:

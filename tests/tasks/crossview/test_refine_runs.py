@@ -105,7 +105,7 @@ def test_refinement_stage_from_a_retrieval_checkpoint(vigor_root, tmp_path):
                             "tile_size_px"}
     assert refined["confidence_within_5m"] == pytest.approx(
         within.probability(refine_features([refined["mass_5m"]]))[0], abs=1e-6)
-    searched = localizer.localize(read_street(vigor_root / query["path"]), topk=3).to_json()
+    searched = localizer.localize(read_street(vigor_root / query["path"]), topk=3, heading="search").to_json()
     assert "confidence_within_5m" not in searched["refined_position"]  # a known-heading refiner, the heading searched
     assert 0.0 <= refined["mass_5m"] <= 1.0
     assert refined["heading_deg"] == 0.0  # trained with a known heading: the given one

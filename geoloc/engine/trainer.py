@@ -382,6 +382,7 @@ class Trainer:
         task.train()
         return metrics
 
+    @torch.no_grad()
     def validation_outputs(self, task: Task, loader: DataLoader, name: str) -> dict[str, torch.Tensor]:
         """validation_step's outputs over one named loader, gathered in dataset order: validate's first half, for
         a caller that scores several query sets against one encoding of the references (`geoloc bench`)."""

@@ -1,6 +1,6 @@
 """One street image in, a position and a heading out: a checkpoint's query branch against a saved gallery.
 
-The gallery is what `python evaluate.py ckpt=... gallery.save=DIR` writes (geoloc/tasks/crossview/gallery.py and
+The gallery is what `python evaluate.py ckpt=... gallery.save=DIR` writes (geoloc/tasks/crossview/gallery_build.py and
 geoloc/gallery/places.py): the reference descriptors, where each reference is, and the split's queries. The heading is unknown in
 general, so `heading=search` encodes the image at K candidate headings on the 360° canvas
 (geoloc/tasks/crossview/views.py) and each reference keeps its best-scoring candidate: the score ranks the

@@ -80,7 +80,7 @@ def test_an_existing_gallery_is_kept_unless_overwrite_before_any_data_is_read(bu
 
 
 def test_a_trained_kind_on_eight_references_is_refused_before_encoding(built, tmp_path, monkeypatch):
-    from geoloc.tasks.crossview import gallery as crossview_gallery
+    from geoloc.tasks.crossview import gallery_build as crossview_gallery
 
     pytest.importorskip("faiss")
     root, ckpt, _ = built

@@ -14,11 +14,11 @@ import torch
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.calibration import expected_calibration_error, fit_calibrator
 from geoloc.models.refiners import Refinement
-from geoloc.tasks.crossview import gallery as crossview_gallery
+from geoloc.tasks.crossview import gallery_build as crossview_gallery
 from geoloc.gallery.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1, WITHIN_5M, calibrators,
                                                fit_within, refine_features, with_refiner)
 from geoloc.tasks.crossview.datasets import EvalData
-from geoloc.tasks.crossview.gallery import GalleryConfig
+from geoloc.tasks.crossview.gallery_build import GalleryConfig
 from geoloc.tasks.crossview.refine import RefineConfig, whole_tile_answers
 from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from helpers.gallery_runs import META

@@ -95,20 +95,15 @@ class CheckpointWriter:
 
     submit() first waits for the previous write (one write in flight at most) and raises its error if it failed;
     join() waits for the last one, and is called at the end of fit, also when training fails, so a finished
-    epoch's last.pt is on disk whatever follows. background=False writes in the caller's thread (benchmarks
-    compare both)."""
+    epoch's last.pt is on disk whatever follows."""
 
-    def __init__(self, background: bool = True):
-        self.background = background
+    def __init__(self):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
 
     def submit(self, state: dict, path: Path, also: tuple[Path, ...] = ()) -> None:
         self.join()
         state = on_cpu(state)  # before training goes on: the next step changes the live tensors
-        if not self.background:
-            self._write(state, path, also)
-            return
         self._thread = threading.Thread(target=self._write_catching, args=(state, path, also),
                                         name="geoloc-checkpoint", daemon=False)
         self._thread.start()
@@ -121,15 +116,11 @@ class CheckpointWriter:
             error, self._error = self._error, None
             raise RuntimeError(f"writing a checkpoint failed: {error}") from error
 
-    @staticmethod
-    def _write(state: dict, path: Path, also: tuple[Path, ...]) -> None:
-        save_atomic(state, path)
-        for other in also:
-            link_atomic(path, other)
-
-    def _write_catching(self, state, path, also) -> None:
+    def _write_catching(self, state: dict, path: Path, also: tuple[Path, ...]) -> None:
         try:
-            self._write(state, path, also)
+            save_atomic(state, path)
+            for other in also:
+                link_atomic(path, other)
         except BaseException as err:  # raised in the training thread by the next submit() or join()
             self._error = err
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from omegaconf import MISSING, OmegaConf
 
-from geoloc.apps.table_files import evaluate_config, refuse_out_that_is_no_folder, refuse_taken, write_whole
+from geoloc.apps.table_files import (check_fovs, evaluate_config, refuse_out_that_is_no_folder, refuse_taken,
+                                     write_whole)
 from geoloc.config import ConfigError, checked
 from geoloc.tasks.crossview.robustness import Plan, as_json, evaluate_conditions, markdown
 
@@ -55,8 +56,7 @@ class RobustnessConfig:
     progress: bool = False
 
     def __post_init__(self):
-        if not self.fovs or any(not 0 < f <= 360 for f in self.fovs):
-            raise ValueError(f"fovs must be a non-empty list of degrees in (0, 360], got {self.fovs}")
+        check_fovs(self.fovs)
         if self.heading_steps < 1 or self.distractors < 0:
             raise ValueError(f"heading_steps must be >= 1 and distractors >= 0, got {self.heading_steps} and "
                              f"{self.distractors}")

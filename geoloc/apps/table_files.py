@@ -1,5 +1,6 @@
-"""What the table apps (`geoloc robustness`, `geoloc bench`) share: evaluate.py's config composed as evaluate.py
-composes it, an out= folder checked before anything runs, and files written whole, never replaced unasked."""
+"""What the table apps (`geoloc robustness`, `geoloc bench`) share: their fovs= check, evaluate.py's config composed
+as evaluate.py composes it, an out= folder checked before anything runs, and files written whole, never replaced
+unasked."""
 
 from __future__ import annotations
 
@@ -8,6 +9,12 @@ import tempfile
 from pathlib import Path
 
 from geoloc.config import ConfigError
+
+
+def check_fovs(fovs: list[float]) -> None:
+    """fovs= of a table app: a non-empty list of fields of view in degrees, each in (0, 360]."""
+    if not fovs or any(not 0 < f <= 360 for f in fovs):
+        raise ValueError(f"fovs must be a non-empty list of degrees in (0, 360], got {fovs}")
 
 
 def evaluate_config(ckpt: str, overrides, device: str, num_workers: int, progress: bool):

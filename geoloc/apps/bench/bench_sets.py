@@ -15,16 +15,12 @@ SYNTHETIC_CVACT = dict(preset="small", train=0, val=300, seed=0)  # the embedded
 class TestSet:
     """One test set: `dataset` the evaluate.py overrides naming its data (without a root), `root_key` the argument
     giving its released root; `panorama`: its queries are panoramas, so the FoV / heading protocols apply (photo
-    queries are scored at their own view alone); `published`: its key in published.yaml."""
+    queries are scored at their own view alone). `name` is also its key in published.yaml."""
 
     name: str
     dataset: tuple[str, ...]
     root_key: str
     panorama: bool = True
-
-    @property
-    def published(self) -> str:
-        return self.name
 
 
 TEST_SETS = {t.name: t for t in (

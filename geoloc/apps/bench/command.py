@@ -16,7 +16,8 @@ from geoloc.apps.bench.checkpoints import checkpoints
 from geoloc.apps.bench.protocols import HEADINGS, PHOTO, protocols
 from geoloc.apps.bench.encode_once import score_protocols
 from geoloc.apps.bench.bench_sets import ROOT_KEYS, TEST_SETS, data_overrides, test_set
-from geoloc.apps.table_files import evaluate_config, refuse_out_that_is_no_folder, refuse_taken, write_whole
+from geoloc.apps.table_files import (check_fovs, evaluate_config, refuse_out_that_is_no_folder, refuse_taken,
+                                     write_whole)
 from geoloc.config import ConfigError, checked
 
 USAGE = f"""usage: geoloc bench ckpts=[PATH,...] [sets=[{','.join(TEST_SETS)}]] [fovs=[360,180,90,70]]
@@ -61,8 +62,7 @@ class BenchConfig:
     progress: bool = True
 
     def __post_init__(self):
-        if not self.fovs or any(not 0 < f <= 360 for f in self.fovs):
-            raise ValueError(f"fovs must be a non-empty list of degrees in (0, 360], got {self.fovs}")
+        check_fovs(self.fovs)
         if not self.headings or any(h not in HEADINGS for h in self.headings):
             raise ValueError(f"headings must be a non-empty list of {list(HEADINGS)}, got {self.headings}")
         if self.heading_steps < 1:
@@ -109,14 +109,13 @@ def bench(args: list[str]) -> dict:
     settings = {"ckpts": [{"name": n, "path": str(p)} for n, p in runs], "sets": list(cfg.sets),
                 "fovs": list(cfg.fovs), "headings": list(cfg.headings), "heading_steps": cfg.heading_steps,
                 "roots": roots, "dataset_overrides": dataset}
-    table = report.markdown(rows, notes)
+    table, record = report.markdown(rows, notes), report.record(rows, settings, notes, seconds)
     out.mkdir(parents=True, exist_ok=True)
-    write_whole(out / "bench.json", json.dumps(report.record(rows, settings, notes, seconds), indent=2) + "\n",
-                cfg.overwrite)
+    write_whole(out / "bench.json", json.dumps(record, indent=2) + "\n", cfg.overwrite)
     write_whole(out / "bench.csv", report.csv_text(rows), cfg.overwrite)
     write_whole(out / "bench.md", table, cfg.overwrite)
     print(f"\n{table}\nwritten: {', '.join(str(out / name) for name in FILES)} ({seconds:.0f} s)")
-    return report.record(rows, settings, notes, seconds)
+    return record
 
 
 def bench_cell(name: str, ckpt: Path, test, chosen: list, roots: dict, dataset: list[str], cfg: BenchConfig):

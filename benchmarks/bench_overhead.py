@@ -41,17 +41,19 @@ from geoloc.tasks.crossview.transforms import normalised  # noqa: E402
 
 
 class HeldItems(Dataset):
-    """The training pairs' items of epoch 0, decoded once; the pairs' other attributes (split, labels) as they are."""
+    """The first `n` training pairs' items of epoch 0, decoded once, repeated to `length` items (default `n`: an
+    epoch of the size asked for without decoding it); the pairs' other attributes (split, labels) as they are."""
 
-    def __init__(self, pairs, n: int):
+    def __init__(self, pairs, n: int, length: int | None = None):
         self.pairs = pairs
         self.items = [pairs[(i, 0)] for i in range(n)]
+        self.length = n if length is None else length
 
     def __len__(self):
-        return len(self.items)
+        return self.length
 
     def __getitem__(self, key):
-        return self.items[key[0] if isinstance(key, tuple) else key]
+        return self.items[(key[0] if isinstance(key, tuple) else key) % len(self.items)]
 
     def __getattr__(self, name):
         return getattr(self.__dict__["pairs"], name)

@@ -44,6 +44,7 @@ from geoloc.launch.hydra_hooks import compose_conf  # noqa: E402
 from geoloc.engine import Trainer  # noqa: E402
 from geoloc.engine import checkpoint as ckpt_io  # noqa: E402
 from geoloc.tasks.crossview import build_run  # noqa: E402
+from bench_overhead import HeldItems  # noqa: E402  (the items decoded once, the benchmark's)
 
 
 def dataset_root(args) -> Path:
@@ -97,23 +98,6 @@ def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
     if trainer.device.type == "cuda":
         result["peak_gib"] = torch.cuda.max_memory_allocated() / 2**30
     return result
-
-
-class Repeated(torch.utils.data.Dataset):
-    """`items` (decoded once) of `pairs` repeated to `n`: an epoch of the size asked for without decoding it; the
-    pairs' other attributes (split, labels) as they are."""
-
-    def __init__(self, pairs, items: list, n: int):
-        self.pairs, self.items, self.n = pairs, items, n
-
-    def __getattr__(self, name):
-        return getattr(self.__dict__["pairs"], name)
-
-    def __len__(self):
-        return self.n
-
-    def __getitem__(self, key):
-        return self.items[(key[0] if isinstance(key, tuple) else key) % len(self.items)]
 
 
 class EveryEpochBest:
@@ -200,8 +184,7 @@ def bench_fit(cfg, train_set, args, step_s: float | None) -> dict:
     run_dir = Path(tempfile.mkdtemp(prefix="geoloc_bench_fit_"))
     run = build_run(cfg, run_dir)
     task, trainer = run.task, run.trainer
-    items = [train_set[(i % len(train_set), 0)] for i in range(min(len(train_set), args.fit_pairs))]
-    pairs = Repeated(train_set, items, args.fit_pairs)
+    pairs = HeldItems(train_set, min(len(train_set), args.fit_pairs), args.fit_pairs)
     writer = {"background": ckpt_io.CheckpointWriter, "sync-twice": SerialisedTwice, "none": NoWrites}[args.writer]()
     trainer.writer = EveryEpochBest(writer, run_dir)
     steps = len(pairs) // args.batch

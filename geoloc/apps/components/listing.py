@@ -46,8 +46,9 @@ def describe(kind: str) -> list[str]:
         where = getattr(factory, "__module__", None) or getattr(factory, "__name__", "")
         built = f"{where}.{getattr(factory, '__qualname__', '')}".rstrip(".")
         lines.append(f"  {name:17s} {built}")
-        if keys(factory, declared.runtime):
-            lines.append(f"  {'':18s}{'  '.join(keys(factory, declared.runtime))}")
+        settable = keys(factory, declared.runtime)
+        if settable:
+            lines.append(f"  {'':18s}{'  '.join(settable)}")
     return lines
 
 

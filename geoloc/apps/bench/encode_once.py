@@ -7,9 +7,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 from geoloc.config import ConfigError
-from geoloc.engine import Trainer, TrainerConfig
 from geoloc.tasks.crossview.config import parse_evaluation
 from geoloc.tasks.crossview.datasets import ViewImages, read_split
+from geoloc.tasks.crossview.run import evaluation_trainer
 
 PROTOCOL_KEYS = ("fov", "random_heading", "heading_steps")  # what may differ between the protocols of a test set
 
@@ -29,9 +29,7 @@ def score_protocols(task, stored, configs: list) -> tuple[list[dict], dict]:
         raise ConfigError("the refiner reads full panoramas: a checkpoint with a refiner is benched at FoV 360 with "
                           "the heading known (fovs=[360] headings=[known])")
     split = read_split(first.data, first.reader, first.data.split)
-    trainer = Trainer(TrainerConfig(device=first.job.device, num_workers=first.job.num_workers,
-                                    progress=first.job.progress, precision=first.precision),
-                      run_dir=first.run_dir or ".")
+    trainer = evaluation_trainer(first)
     task.to(trainer.device)
     task.validate_on(split)
 

@@ -125,8 +125,7 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
     if eval_data is None:
         eval_data = build_eval(run.data, run.reader, run.data.split, refine=run.components.refine)
     task.validate_on(eval_data.split)
-    trainer = Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress,
-                                    precision=run.precision), run_dir=run.run_dir or ".")
+    trainer = evaluation_trainer(run)
     task.to(trainer.device)
     if run.gallery.save or run.gallery.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)
         if run.data.random_heading:
@@ -144,6 +143,13 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
     if dist.is_main():
         print_table(metrics, f"{eval_data.split.name} ({len(eval_data)} queries), ckpt {run.job.ckpt}")
     return metrics
+
+
+def evaluation_trainer(run: CrossViewEvaluation) -> Trainer:
+    """The engine an evaluation scores with (evaluate.py, geoloc bench): its device, workers and progress bar, and
+    the run's autocast on CUDA; it trains nothing."""
+    return Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress,
+                                 precision=run.precision), run_dir=run.run_dir or ".")
 
 
 def stored_config(state: dict) -> DictConfig:

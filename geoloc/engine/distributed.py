@@ -8,6 +8,7 @@ Rank 0 owns all I/O: logs, checkpoints, pictures.
 
 from __future__ import annotations
 
+import gc
 import os
 import re
 import subprocess
@@ -156,5 +157,10 @@ def reduce_mean(value: float, device: torch.device) -> float:
 
 
 def cleanup() -> None:
+    """Leave the process group. destroy_process_group() only forgets the group; objects that still hold it (a DDP
+    wrapper in a reference cycle) keep its gloo threads alive until they are collected. Collected here, while the
+    interpreter is alive: at interpreter finalisation gloo's teardown aborts the rank (SIGABRT, \"terminate called
+    without an active exception\"), which torchrun reports as a failed run."""
     if is_dist():
         dist.destroy_process_group()
+        gc.collect()

@@ -284,6 +284,9 @@ class Trainer:
                 dist.barrier()
         finally:
             self.writer.join()  # the last epoch's checkpoint is on disk before fit returns or raises
+            # the DDP wrapper holds the process group: dropped here, so dist.cleanup() can free the group's
+            # threads while the interpreter is alive (not at its finalisation, where gloo aborts the process)
+            self.model = self._eager_model = None
         self.logger.close()
         return self.best or last_val
 

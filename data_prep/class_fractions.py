@@ -4,7 +4,7 @@
 
 Writes DIR/class_fractions.json: {"classes": [8 names], "fractions": [8 floats], "pixels": [8 counts], "source":
 {format, split, class map, file count, fingerprint of the label files}}. Training does the same by itself at
-start-up whenever the file is missing or no longer matches the label files (geoloc.tasks.mmdip.label_census), so this
+start-up whenever the file is missing or no longer matches the label files (geoloc.data.label_census), so this
 tool is only needed to prepare a read-only copy of a dataset, or to look at the numbers. `dynamic` reads
 label_static/ of the split's rows; `carla4` reads the static seg panel of the authors' 4-panel PNGs (CARLA tags
 mapped to the 8 classes). Without --force an up-to-date file is kept.
@@ -19,7 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from geoloc.tasks.mmdip.datasets import STATIC_CLASSES  # noqa: E402
-from geoloc.tasks.mmdip.label_census import FILE_NAME  # noqa: E402
+from geoloc.data.label_census import FILE_NAME  # noqa: E402
 from geoloc.tasks.mmdip.readers import load_class_fractions  # noqa: E402
 
 

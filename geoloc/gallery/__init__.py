@@ -1,7 +1,7 @@
 """The deployable gallery: a saved gallery folder (the index, each reference's place, the queries' split), the
-shards a large one is built from and their merge, the confidence fitted on held-out queries, and the answer type an
-app returns. It knows no method: the cross-view task writes it (tasks/crossview/gallery_build.py), the apps read
-it."""
+shards a large one is built from and their merge, its build settings (index_settings.py: evaluate.py's gallery.*
+keys), the confidence fitted on held-out queries, and the answer type an app returns. It knows no method: the
+cross-view task writes it (tasks/crossview/gallery_build.py), the apps read it."""
 
 from geoloc.gallery.answer import LocalizationResult
 from geoloc.gallery.folder import SavedGallery, open_gallery

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from geoloc.apps.robustness import robustness, split_args
+from geoloc.apps.robustness.command import robustness, split_args
 from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.datasets.cvusa import cvusa
@@ -115,7 +115,7 @@ def test_distractors_are_tiles_outside_the_evaluated_gallery_checked_before_any_
     """The default distractor_split=train on a dataset whose splits share their tiles (VIGOR same-area): the shared
     tiles are no distractors, and where none is left the padded rows are left out with a note; a distractor split
     that cannot pad is refused before the first row is scored."""
-    from geoloc.tasks.crossview import robustness as conditions
+    from geoloc.apps.robustness import conditions
 
     base, root, _, ckpt = trained
     scored = []

@@ -8,7 +8,7 @@ import pytest
 import torch
 from geoloc.config import ConfigError
 from geoloc.eval import GalleryIndex
-from geoloc.tasks.crossview.gallery_build import GalleryConfig, build_index
+from geoloc.gallery.index_settings import GalleryConfig, build_index
 
 faiss = pytest.importorskip("faiss")
 

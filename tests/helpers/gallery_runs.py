@@ -9,7 +9,7 @@ import torch
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.tasks.crossview import gallery_build as crossview_gallery
 from geoloc.tasks.crossview.datasets import EvalData
-from geoloc.tasks.crossview.gallery_build import GalleryConfig
+from geoloc.gallery.index_settings import GalleryConfig
 
 # what run.score records of the weights and the reader that built a gallery
 META = {"ckpt": "/runs/a/best.pt", "model_fingerprint": "a" * 64, "dataset": "pairs"}

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from geoloc.tasks.crossview.robustness import test_condition
+from geoloc.apps.robustness.conditions import test_condition
 
 HEADINGS = ("known", "unknown")
 

@@ -21,7 +21,7 @@ from geoloc.config import ConfigError, EvaluateKeys, TrainKeys, checked, default
 from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig, parse_dataset
-from geoloc.tasks.crossview.gallery_build import GalleryConfig
+from geoloc.gallery.index_settings import GalleryConfig
 from geoloc.tasks.crossview.refine import RefineConfig, parse_refiner, refine_nodes
 from geoloc.tasks.crossview.validation_keys import check_monitor, validation_plan
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from geoloc.tasks.mmdip import label_census
+from geoloc.data import label_census
 from geoloc.data.list_files import csv_rows, refuse_repeats
 from geoloc.data.validate import check_files, require_complete, run_checks
 from geoloc.engine.sampling import item_rng, split_key
@@ -290,7 +290,7 @@ def class_fractions(root, split: str, label_maps, force: bool = False) -> list[f
 
     `label_maps` is (files, read, source) of the split (dynamic_label_maps, carla4_label_maps); a reader's
     class_fractions() calls this. Recounted (and stored) when the file is missing, older than the labels or made
-    from other files (geoloc.tasks.mmdip.label_census); the count reads every label map, so an id outside the
+    from other files (geoloc.data.label_census); the count reads every label map, so an id outside the
     class set fails naming the file. Raises DataFormatError when one class covers every pixel (nothing to segment);
     warns for each class with no pixel at all (eq. 1 then gives it the largest weight, 1/ln(1.02) = 50.5, but
     phase 1 never sees it).

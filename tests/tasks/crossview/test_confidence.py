@@ -17,7 +17,7 @@ from geoloc.tasks.crossview import gallery_build as crossview_gallery
 from geoloc.gallery.confidence import NO_HOLDOUT, calibrators, with_positives
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.datasets import EvalData, calibration_data, holdout_rows, read_split
-from geoloc.tasks.crossview.gallery_build import GalleryConfig
+from geoloc.gallery.index_settings import GalleryConfig
 from geoloc.gallery.folder import open_gallery
 from helpers.gallery_runs import META, pairs_split
 

@@ -18,7 +18,7 @@ from geoloc.tasks.crossview import gallery_build as crossview_gallery
 from geoloc.gallery.confidence import (NO_HOLDOUT, REFINE_FEATURES, TOP1, WITHIN_5M, calibrators,
                                                fit_within, refine_features, with_refiner)
 from geoloc.tasks.crossview.datasets import EvalData
-from geoloc.tasks.crossview.gallery_build import GalleryConfig
+from geoloc.gallery.index_settings import GalleryConfig
 from geoloc.tasks.crossview.refine import RefineConfig, whole_tile_answers
 from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from helpers.gallery_runs import META

@@ -1,6 +1,6 @@
 """MMDIP checks its labels: ids outside the class set, stale class fractions, absent classes and single-class
 labels are caught at start-up (a reader's class_fractions: geoloc.tasks.mmdip.datasets.class_fractions,
-geoloc.tasks.mmdip.label_census)."""
+geoloc.data.label_census)."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 from geoloc.apps import mmdip_tables
-from geoloc.tasks.mmdip import tables
+from geoloc.apps.mmdip_tables import tables
 
 from helpers.dynamic_data import TINY_MMDIP, write_tiny_dynamic
 

@@ -1,5 +1,5 @@
 """`python -m geoloc.apps.mmdip_tables --out DIR [--tables I II III IV] [hydra overrides ...]`: the MMDIP paper's
-Tables I-IV and figures on one dataset (geoloc/tasks/mmdip/tables.py says what each holds), from train.py's config
+Tables I-IV and figures on one dataset (geoloc/apps/mmdip_tables/tables.py says what each holds), from train.py's config
 with task=mmdip and the overrides given."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from geoloc.launch.hydra_hooks import compose_conf
-from geoloc.tasks.mmdip.tables import make_tables
+from geoloc.apps.mmdip_tables.tables import make_tables
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m geoloc.apps.mmdip_tables", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--tables", nargs="+", default=["I", "II", "III", "IV"], choices=["I", "II", "III", "IV"])
     p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. dataset.root=DIR task.segmentation.epochs=4")

@@ -1,5 +1,5 @@
 """`geoloc robustness ckpt=PATH ...`: one Markdown and one JSON table of a checkpoint under every test condition
-(geoloc/tasks/crossview/robustness.py), written whole into `out`."""
+(geoloc/apps/robustness/conditions.py), written whole into `out`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from omegaconf import MISSING, OmegaConf
 from geoloc.apps.table_files import (check_fovs, evaluate_config, refuse_out_that_is_no_folder, refuse_taken,
                                      write_whole)
 from geoloc.config import ConfigError, checked
-from geoloc.tasks.crossview.robustness import Plan, as_json, evaluate_conditions, markdown
+from geoloc.apps.robustness.conditions import Plan, as_json, evaluate_conditions, markdown
 
 USAGE = """usage: geoloc robustness ckpt=PATH [out=DIR] [overwrite=false] [fovs=[360,180,90,70]] [heading_steps=12]
                          [distractors=1000] [distractor_split=train] [cross=dataset=vigor] [device=auto]

@@ -1,5 +1,5 @@
 """The MMDIP paper's tables and figures on one dataset: make_tables(cfg, out), run by one command
-(geoloc/apps/mmdip_tables.py):
+(geoloc/apps/mmdip_tables/command.py):
 
     python -m geoloc.apps.mmdip_tables --out DIR [--tables I II III IV] [hydra overrides ...]
 

@@ -1,0 +1,3 @@
+from geoloc.apps.mmdip_tables.command import main
+
+main()

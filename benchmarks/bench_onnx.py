@@ -32,8 +32,8 @@ def main() -> None:
     from geoloc.launch.hydra_hooks import compose_conf
     from geoloc.apps.export.onnx_export import export_encoders
     from geoloc.tasks.crossview import CrossViewEncoder
-    from geoloc.tasks.crossview.config import parse_training
-    from geoloc.tasks.crossview.run import build_task
+    from geoloc.tasks.crossview.crossview_config import parse_training
+    from geoloc.tasks.crossview.crossview_run import build_task
 
     torch.set_num_threads(args.threads)
     cfg = compose_conf("train", [*args.overrides, "run_dir=."])

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from geoloc.synthetic import generate  # noqa: E402
-from geoloc.synthetic.config import resolve  # noqa: E402
+from geoloc.synthetic.world_config import resolve  # noqa: E402
 from geoloc.synthetic.layouts import encode  # noqa: E402
 from geoloc.synthetic.samples import render_pair, render_place_views  # noqa: E402
 

@@ -21,7 +21,7 @@ import cv2  # noqa: E402
 from geoloc.synthetic import generate  # noqa: E402
 from geoloc.synthetic.city import (build_city, city_rngs, panorama_position,  # noqa: E402
                                         render_panorama, render_tiles)
-from geoloc.synthetic.config import resolve, resolve_options  # noqa: E402
+from geoloc.synthetic.world_config import resolve, resolve_options  # noqa: E402
 from geoloc.synthetic.drone import render_building  # noqa: E402
 from geoloc.synthetic.layouts import encode  # noqa: E402
 

@@ -9,7 +9,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from geoloc.synthetic import LAYOUTS, PRESETS, generate  # noqa: E402
-from geoloc.synthetic.config import FIELDS, OPTION_FIELDS, OPTIONS, SynthConfig  # noqa: E402
+from geoloc.synthetic.world_config import FIELDS, OPTION_FIELDS, OPTIONS, SynthConfig  # noqa: E402
 
 HELP = {
     "gap_strength": "appearance gap between the two views of a place, 0..1 (0.5 moderate)",

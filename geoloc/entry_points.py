@@ -36,7 +36,7 @@ def _evaluate(cfg: DictConfig) -> None:
 
 @hydra.main(version_base="1.3", config_path=CONF, config_name="localize")
 def _localize(cfg: DictConfig) -> None:
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     with refusals_in_one_line():
         localize(cfg)
@@ -63,7 +63,7 @@ def evaluate() -> None:
 
 
 def localize() -> None:
-    from geoloc.apps.localize.run import LocalizeConfig
+    from geoloc.apps.localize.command import LocalizeConfig
     from geoloc.launch.schemas import store_dataclass
 
     store_dataclass("localize", LocalizeConfig)  # the defaults geoloc/conf/localize.yaml extends

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from geoloc.launch.hydra_hooks import compose_conf
-from geoloc.apps.localize.run import LocalizeConfig
+from geoloc.apps.localize.command import LocalizeConfig
 from geoloc.launch.schemas import store_dataclass
 
 store_dataclass("localize", LocalizeConfig)  # as localize.py stores it

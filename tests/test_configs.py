@@ -78,7 +78,7 @@ def test_every_option_of_every_group_composes_and_builds(group, option, imagenet
         if cfg.dataset.name == "emptycities":  # an evaluation-only reader: refused for training, read by evaluate
             with pytest.raises(ConfigError, match="for evaluation only"):
                 parse(cfg)
-            from geoloc.tasks.mmdip.config import DynamicDataConfig
+            from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig
 
             evaluation = compose_evaluate(["ckpt=x.pt", "dataset=emptycities", f"dataset.root={tmp_path}"])
             asked = {k: v for k, v in evaluation.dataset.items() if v is not None}  # null = as trained

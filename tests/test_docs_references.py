@@ -411,7 +411,7 @@ def test_the_checker_reports_each_kind_of_drift(kind, line):
 
 def test_the_checker_passes_real_references_and_placeholders():
     fine = ("tests/launch/test_resume.py, [usage](usage.md), `geoloc.engine.checkpoint`, geoloc.eval.search_index.KINDS, "
-            "geoloc/apps/localize/run.py:localize, `scoring.rank`, `config_nodes()`, `trainer.device`, "
+            "geoloc/apps/localize/command.py:localize, `scoring.rank`, `config_nodes()`, `trainer.device`, "
             "`gallery.json`, outputs/crossview/<date>/best.pt, geoloc/conf/experiment/*.yaml, gallery.save=DIR/SHARD_i, "
             "VIGOR's `dataloader.py`, CCVPE's `ori_noise`, https://github.com/x/y/tests/z.py, `heading_steps`")
     assert check_text(fine, REPO / "docs" / "fake.md") == []

@@ -8,7 +8,7 @@ See docs/synthetic.md.
 """
 from .appearance import AppearanceGap
 from .classes import ALL_CLASSES, STATIC_CLASSES
-from .config import LAYOUTS, PRESETS, SynthConfig
+from .world_config import LAYOUTS, PRESETS, SynthConfig
 from .generate import MARKER, VERSION, DatasetMismatchError, default_cache, ensure_dataset, generate
 from .geometry import tile_geometry
 

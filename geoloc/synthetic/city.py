@@ -20,7 +20,7 @@ from . import traffic as T
 from .aerial import render_aerial_window
 from .appearance import Conditions, base_conditions, finish, other_time
 from .classes import ROAD, ROADLINES
-from .config import SynthConfig
+from .world_config import SynthConfig
 from .light import Lighting
 from .panorama import SPHERE_HORIZON, panorama_rays
 from .places import Place

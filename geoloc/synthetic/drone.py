@@ -18,7 +18,7 @@ from . import traffic as T
 from .aerial import render_aerial
 from .appearance import base_conditions, finish, other_time
 from .classes import BUILDINGS, SIDEWALK
-from .config import SynthConfig
+from .world_config import SynthConfig
 from .light import Lighting
 from .roads import bearing_vec, rect
 from .samples import make_place, street_traffic

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from .classes import colorize
-from .config import resolve
+from .world_config import resolve
 from .samples import render_pair, render_place_views
 
 

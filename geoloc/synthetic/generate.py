@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from . import layouts as LY
 from . import u1652_layout, vigor_layout
-from .config import OPTIONS, SynthConfig, resolve, resolve_options
+from .world_config import OPTIONS, SynthConfig, resolve, resolve_options
 from .samples import render_pair, render_place_views
 
 VERSION = "1.0"

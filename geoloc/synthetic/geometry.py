@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .config import OPTIONS, SynthConfig
+from .world_config import OPTIONS, SynthConfig
 from .generate import MARKER
 from .tiles import TileGrid
 

@@ -17,7 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from .city import CITY_NAMES, build_city
-from .config import SynthConfig, VigorOptions
+from .world_config import SynthConfig, VigorOptions
 from .generate import MARKER, write_marker
 from .vigor_layout import CROSS_AREA_FILE, write_panorama, write_tiles
 

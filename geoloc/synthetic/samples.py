@@ -10,7 +10,7 @@ import numpy as np
 from . import traffic as T
 from .aerial import render_aerial
 from .appearance import Conditions, base_conditions, finish, noise_patch, other_time
-from .config import SynthConfig
+from .world_config import SynthConfig
 from .light import Lighting
 from .panorama import CVUSA_HORIZON, SPHERE_HORIZON, panorama_rays
 from .perspective import Pose, jitter_pose, lane_pose, pinhole_rays

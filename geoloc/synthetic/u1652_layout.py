@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import layouts as LY
-from .config import SynthConfig, U1652Options
+from .world_config import SynthConfig, U1652Options
 from .drone import check_geometry, render_building
 
 SPLIT_CODES = {"train": 1, "val": 2, "extra": 3}

@@ -28,7 +28,7 @@ from geoloc.data.tile_offsets import OFFSETS_FILE, offsets_text
 from . import layouts as LY
 from .city import (CITY_NAMES, CITY_ORIGINS, City, build_city, city_rngs, panorama_position, render_panorama,
                    render_tiles)
-from .config import SynthConfig, VigorOptions
+from .world_config import SynthConfig, VigorOptions
 from .tiles import TileGrid
 
 SPLIT_CODES = {"train": 1, "val": 2}

@@ -152,7 +152,7 @@ def test_localize_refuses_a_gallery_of_other_weights_or_without_places(gallery, 
 
 
 def test_localize_py_answers_a_folder_with_one_json_line_and_picture_each(gallery, tmp_path, capsys):
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     root, ckpt, folder = gallery
     images = tmp_path / "images"
@@ -204,7 +204,7 @@ def compose_localize(*overrides):
 def test_localize_py_never_writes_among_its_inputs_and_names_each_figure(gallery, tmp_path, capsys):
     """out= pointed at the image folder used to write the figures over the inputs (a.png's figure is a.png) and
     score a figure as the next query; a.jpg and a.png wrote the same a.png."""
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     root, ckpt, folder = gallery
     images = tmp_path / "images"
@@ -223,7 +223,7 @@ def test_localize_py_never_writes_among_its_inputs_and_names_each_figure(gallery
 
 
 def test_localize_py_holds_the_lock_of_its_out_folder(gallery, tmp_path):
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
     from geoloc.launch.rundir import RunDirTaken, claimed
 
     root, ckpt, folder = gallery

@@ -261,7 +261,7 @@ def compose_localize(ckpt, folder, image, out, *overrides):
     ("device=banana", "device='banana' is not a device: use one of auto, cpu"),
 ])
 def test_localize_py_names_a_bad_setting_before_loading_anything(gallery, tmp_path, override, message):  # noqa: F811
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     root, ckpt, folder = gallery
     with pytest.raises(ValueError, match=message):
@@ -270,7 +270,7 @@ def test_localize_py_names_a_bad_setting_before_loading_anything(gallery, tmp_pa
 
 @pytest.mark.slow
 def test_localize_py_refuses_an_image_over_a_limit_from_its_header(gallery, tmp_path, monkeypatch):  # noqa: F811
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     _, ckpt, folder = gallery
     strip = tmp_path / "strip.png"
@@ -297,7 +297,7 @@ def test_a_panorama_with_no_horizon_rows_is_refused_naming_the_file(gallery, tmp
     """A 1-row image against a full-sphere gallery (VIGOR's queries): its horizon band, rows H/4 to 3H/4, is empty.
     The service answers 422 naming the upload; localize.py refuses a folder holding one before it answers any
     image, naming the file."""
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     _, ckpt, folder = gallery
     loaded = Localizer.load(ckpt, folder, device="cpu")

@@ -7,7 +7,7 @@ from geoloc.config import ConfigError
 from geoloc.data.polar import street_to_ground, street_to_ground_grid
 from geoloc.launch import run
 from geoloc.synthetic.classes import ROAD, ROADLINES
-from geoloc.synthetic.config import resolve
+from geoloc.synthetic.world_config import resolve
 from geoloc.synthetic.samples import render_pair
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.datasets import read_split

@@ -122,7 +122,7 @@ def test_augment_seed_changes_the_augmentation(tiny_cvusa):
 @pytest.mark.slow
 def test_the_runs_seed_reaches_init_sampling_and_augmentation(tiny_cvusa, tmp_path, monkeypatch):
     """`seed=7` (not dataset.seed, which picks the synthetic world) seeds what a seed sweep must vary."""
-    from geoloc.tasks.crossview import run as crossview_run
+    from geoloc.tasks.crossview import crossview_run
 
     from conftest import TINY, compose_train
 

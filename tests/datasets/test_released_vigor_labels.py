@@ -156,7 +156,7 @@ def test_every_released_line_reads(split, capsys):
 
 
 def test_a_metre_figure_is_printed_with_its_label_set(capsys):
-    from geoloc.tasks.crossview.run import print_table
+    from geoloc.tasks.crossview.crossview_run import print_table
 
     print_table({"R@1": 0.5, "fine_median_m": 2.5, "metre_labels": "vigor_original"}, "vigor/same_area/test")
     out = capsys.readouterr().out

@@ -27,8 +27,8 @@ def train_until_killed(cfg, monkeypatch, global_step: int) -> None:
 
 def task_of(cfg):
     """The CrossViewTask a composed train config describes, as train.py builds it (parse, then build)."""
-    from geoloc.tasks.crossview.config import parse_training
-    from geoloc.tasks.crossview.run import build_task
+    from geoloc.tasks.crossview.crossview_config import parse_training
+    from geoloc.tasks.crossview.crossview_run import build_task
 
     run = parse_training(cfg)
     return build_task(run.model, run.components, run.trainer.max_epochs)

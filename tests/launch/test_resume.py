@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.launch import resume, run
-from geoloc.tasks.crossview.run import INIT_FROM_FRESH
+from geoloc.tasks.crossview.crossview_run import INIT_FROM_FRESH
 
 from helpers.crossview_runs import train_cfg, task_of
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 from geoloc.synthetic.classes import ROAD, ROADLINES, SIDEWALK
-from geoloc.synthetic.config import resolve
+from geoloc.synthetic.world_config import resolve
 from geoloc.synthetic.panorama import panorama_column_bearing, panorama_rays
 from geoloc.synthetic.samples import (
     make_place,

@@ -121,7 +121,7 @@ def bench(args: list[str]) -> dict:
 def bench_cell(name: str, ckpt: Path, test, chosen: list, roots: dict, dataset: list[str], cfg: BenchConfig):
     """The rows of one checkpoint on one test set: one per protocol."""
     from geoloc.engine import checkpoint as ckpt_io
-    from geoloc.tasks.crossview.run import restored_task, stored_config
+    from geoloc.tasks.crossview.crossview_run import restored_task, stored_config
 
     data, synthetic = data_overrides(test, roots)
     configs = [evaluate_config(str(ckpt), [*data, *dataset, *p.overrides()], cfg.device, cfg.num_workers,

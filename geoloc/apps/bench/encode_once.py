@@ -7,9 +7,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 from geoloc.config import ConfigError
-from geoloc.tasks.crossview.config import parse_evaluation
+from geoloc.tasks.crossview.crossview_config import parse_evaluation
 from geoloc.tasks.crossview.datasets import ViewImages, read_split
-from geoloc.tasks.crossview.run import evaluation_trainer
+from geoloc.tasks.crossview.crossview_run import evaluation_trainer
 
 PROTOCOL_KEYS = ("fov", "random_heading", "heading_steps")  # what may differ between the protocols of a test set
 

@@ -19,7 +19,7 @@ it and the config keys it takes (key=default). Components from your own module a
 (section.module=...; docs/extending.md)."""
 
 # the packages that own the built-in kinds: importing them registers every built-in (their __init__ files)
-OWNERS = ("geoloc.tasks.crossview.run", "geoloc.tasks.mmdip.pipeline")
+OWNERS = ("geoloc.tasks.crossview.crossview_run", "geoloc.tasks.mmdip.pipeline")
 
 
 def keys(factory, runtime: tuple[str, ...]) -> list[str]:

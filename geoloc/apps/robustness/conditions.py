@@ -20,9 +20,9 @@ from pathlib import Path
 
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.tasks.crossview.config import parse_evaluation
+from geoloc.tasks.crossview.crossview_config import parse_evaluation
 from geoloc.tasks.crossview.datasets import eval_sets, padded, read_split
-from geoloc.tasks.crossview.run import restored_task, score, stored_config
+from geoloc.tasks.crossview.crossview_run import restored_task, score, stored_config
 
 KEYS = ("R@1", "R@5", "R@1%")  # the recall columns
 HEADING_KEY = "heading_median_deg"

@@ -14,16 +14,19 @@ checked and bound to the weights that built it (`open_gallery` -> `SavedGallery`
 import sys
 
 from geoloc import registry
-from geoloc.tasks.crossview.config import RESUME_MAY_CHANGE, canonical_config, config_nodes
+from geoloc.tasks.crossview.crossview_config import RESUME_MAY_CHANGE, canonical_config, config_nodes
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
 from geoloc.gallery.confidence import TOP1, WITHIN_5M, calibrators, refine_features, refiner_calibrator
 from geoloc.gallery.folder import SavedGallery, open_gallery
 from geoloc.gallery.shards import merge_shards
 from geoloc.gallery.answer import LocalizationResult
 from geoloc.gallery.places import POSITION_KEYS, Places, read_places
-from geoloc.tasks.crossview.run import Run, build_run, evaluate, sweep_metric, train
+from geoloc.tasks.crossview.crossview_run import Run, build_run, evaluate, sweep_metric, train
 
 registry.register("task", "crossview", sys.modules[__name__])
+# the modules' names before 2026-11-28, kept for one release: .config is crossview_config, .run is crossview_run
+sys.modules[f"{__name__}.config"] = sys.modules[f"{__name__}.crossview_config"]
+sys.modules[f"{__name__}.run"] = sys.modules[f"{__name__}.crossview_run"]
 
 __all__ = ["CrossViewEncoder", "LocalizationResult", "POSITION_KEYS", "Places", "RESUME_MAY_CHANGE", "Run",
            "SavedGallery", "TOP1", "WITHIN_5M", "build_run", "calibrators", "canonical_config", "config_nodes", "evaluate", "merge_shards",

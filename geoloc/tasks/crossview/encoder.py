@@ -57,7 +57,7 @@ class CrossViewEncoder:
     def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":
         """The encoder of a cross-view checkpoint file; another task's checkpoint is refused, naming `use` (what
         wanted it: export.py, localize). device: None or "auto" (the GPU when there is one), "cpu", "cuda:N"."""
-        from geoloc.tasks.crossview.run import restored_task, stored_config
+        from geoloc.tasks.crossview.crossview_run import restored_task, stored_config
 
         device = resolve_device(device)  # a bad device fails before the checkpoint is read
         state = ckpt_io.load(ckpt)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from geoloc import registry
 from geoloc.config import defaults_of
 from geoloc.tasks.mmdip import readers  # noqa: F401  (declares the mmdip_dataset kind)
-from geoloc.tasks.mmdip.config import DynamicDataConfig, MMDIPConfig
+from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig, MMDIPConfig
 
 
 def config_nodes() -> dict[str, dict]:

@@ -27,7 +27,7 @@ from torch import nn
 from geoloc import registry
 from geoloc.losses.gan import lsgan_g_loss
 from geoloc.losses.perceptual import VGGPerceptualLoss
-from geoloc.tasks.mmdip.config import TranslationConfig
+from geoloc.tasks.mmdip.mmdip_config import TranslationConfig
 from geoloc.tasks.mmdip.networks import to_signed
 
 RUNTIME = ("perceptual_weights", "perceptual_layers", "training")

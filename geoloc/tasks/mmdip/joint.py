@@ -18,7 +18,7 @@ from geoloc.engine import Task
 from geoloc.eval.image import image_scores_per_image
 from geoloc.losses.gan import lsgan_d_loss
 from geoloc.losses.segmentation import class_weights
-from geoloc.tasks.mmdip.config import MMDIPConfig
+from geoloc.tasks.mmdip.mmdip_config import MMDIPConfig
 from geoloc.tasks.mmdip.generator_loss import build_generator_loss
 from geoloc.tasks.mmdip.networks import (build_discriminator, build_generator, build_segmenter, generator_input,
                                          to_signed)

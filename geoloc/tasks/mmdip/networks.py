@@ -24,7 +24,7 @@ from geoloc.models.erfnet import ERFNet
 from geoloc.models.fcn import FCN8s
 from geoloc.models.patchgan import PatchGAN
 from geoloc.models.unet import UNet
-from geoloc.tasks.mmdip.config import SegmentationConfig, TranslationConfig
+from geoloc.tasks.mmdip.mmdip_config import SegmentationConfig, TranslationConfig
 
 registry.declare("segmenter", section="task.segmentation", name_key="task.segmentation.model", runtime=("num_classes",))
 

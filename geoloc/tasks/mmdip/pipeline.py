@@ -24,7 +24,7 @@ from geoloc.config import ConfigError, checked, to_yaml
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.tasks.mmdip.config import DynamicDataConfig, MMDIPConfig, data_config, task_config
+from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig, MMDIPConfig, data_config, task_config
 from geoloc.tasks.mmdip.datasets import NUM_CLASSES, STATIC_CLASSES
 from geoloc.tasks.mmdip.generator_loss import check_generator_loss
 from geoloc.tasks.mmdip.joint import JointTask

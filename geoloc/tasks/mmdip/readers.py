@@ -23,7 +23,7 @@ from torch.utils.data import Dataset
 
 from geoloc import registry
 from geoloc.config import ConfigError
-from geoloc.tasks.mmdip.config import DynamicDataConfig
+from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig
 from geoloc.tasks.mmdip.datasets import (CarlaFourPanelDataset, DynamicDataset, EmptyCitiesDataset, carla4_label_maps,
                                          class_fractions, dynamic_label_maps)
 from geoloc.tasks.mmdip.protocol import FROM_TRAIN, TRAIN_SPLIT, PlaceProtocol, each_file_a_place

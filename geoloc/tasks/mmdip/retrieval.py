@@ -23,7 +23,7 @@ from geoloc.eval.image import image_scores_per_image
 from geoloc.data.relevance import Relevance
 from geoloc.eval.recall import recall_summary
 from geoloc.eval.scoring import rank
-from geoloc.tasks.mmdip.config import VPRConfig
+from geoloc.tasks.mmdip.mmdip_config import VPRConfig
 from geoloc.tasks.mmdip.networks import generator_input
 from geoloc.tasks.mmdip.protocol import FROM_TRAIN, PlaceProtocol, describe
 from geoloc.vpr import Gallery, ORBExtractor, Vocabulary, fused_descriptors, spm_encode

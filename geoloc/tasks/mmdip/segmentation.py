@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from geoloc.engine import Task
 from geoloc.eval.segmentation import scores_from_confusion
 from geoloc.losses.segmentation import class_weights
-from geoloc.tasks.mmdip.config import SegmentationConfig
+from geoloc.tasks.mmdip.mmdip_config import SegmentationConfig
 from geoloc.tasks.mmdip.networks import build_segmenter
 
 

@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from geoloc.config import ConfigError
-from geoloc.tasks.mmdip.config import DynamicDataConfig, MMDIPConfig
+from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig, MMDIPConfig
 from geoloc.tasks.mmdip.networks import (
     build_discriminator,
     build_generator,

@@ -205,7 +205,7 @@ def test_embedded_datasets_render_into_the_cache_when_root_is_null(name, layout,
     monkeypatch.setattr(synthetic, "ensure_dataset", fake_ensure)
     with pytest.raises(RuntimeError, match="stop here"):
         if name == "dynamic":
-            from geoloc.tasks.mmdip.config import data_config
+            from geoloc.tasks.mmdip.mmdip_config import data_config
             from geoloc.tasks.mmdip.readers import build_reader
 
             build_reader(data_config(compose_train(["task=mmdip"]).dataset))

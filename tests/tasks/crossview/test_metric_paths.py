@@ -25,10 +25,10 @@ from geoloc.registry import register
 from geoloc.synthetic import generate
 from geoloc.tasks.crossview import figures
 from geoloc.tasks.crossview import task as task_module
-from geoloc.tasks.crossview.config import evaluated_dataset
+from geoloc.tasks.crossview.crossview_config import evaluated_dataset
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.datasets import build_eval
-from geoloc.tasks.crossview.run import restored_task, stored_config
+from geoloc.tasks.crossview.crossview_run import restored_task, stored_config
 from omegaconf import OmegaConf
 from plugins.tiny_cnn import TinyCNN
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.tasks.crossview.run import restored_task, stored_config
+from geoloc.tasks.crossview.crossview_run import restored_task, stored_config
 from omegaconf import OmegaConf
 
 

@@ -45,7 +45,7 @@ def localize_cfg(*overrides):
 @pytest.mark.slow
 def test_fine_tune_evaluate_save_load_localize_and_serve_on_own_data(trained, tmp_path):
     from fastapi.testclient import TestClient
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
     from geoloc.apps.serve import create_app
 
     root, ckpt = trained
@@ -93,7 +93,7 @@ def example_tables() -> dict[str, str]:
 @pytest.mark.slow
 @pytest.mark.skipif(not (REALDATA / "cvusa_mini").is_dir(), reason="../shared/realdata is absent")
 def test_the_worked_example_of_the_docs_evaluates_and_localizes_the_real_samples(trained, tmp_path):
-    from geoloc.apps.localize.run import localize
+    from geoloc.apps.localize.command import localize
 
     _, ckpt = trained
     tables = example_tables()

@@ -17,7 +17,7 @@ from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
 from geoloc.models.crossview import CrossViewModelConfig
-from geoloc.synthetic.config import resolve
+from geoloc.synthetic.world_config import resolve
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.pipeline import parse

@@ -172,7 +172,7 @@ def test_refiner_keys_are_checked_at_the_door():
 
 def test_a_bad_refiner_checkpoint_is_refused_with_the_keys(tmp_path):
     """A retrieval-only checkpoint, or one whose refiner has other shapes, given where a refiner is expected."""
-    from geoloc.tasks.crossview.run import with_weights
+    from geoloc.tasks.crossview.crossview_run import with_weights
 
     retrieval = task_of(compose_train(BASE))
     refining = task_of(compose_train([*BASE, "refiner=correlation"]))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 from geoloc.config import ConfigError
 from geoloc.launch import run
-from geoloc.tasks.crossview.config import parse_training
+from geoloc.tasks.crossview.crossview_config import parse_training
 
 from conftest import TINY, compose_train
 from helpers.crossview_runs import train_cfg

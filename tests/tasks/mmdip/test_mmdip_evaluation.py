@@ -9,7 +9,7 @@ import pytest
 import torch
 from geoloc.config import ConfigError, to_yaml
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.tasks.mmdip.config import data_config, task_config
+from geoloc.tasks.mmdip.mmdip_config import data_config, task_config
 from geoloc.tasks.mmdip.datasets import NUM_CLASSES, STATIC_CLASSES
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.pipeline import load_task, vpr_dir

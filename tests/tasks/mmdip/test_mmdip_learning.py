@@ -12,7 +12,7 @@ anywhere on that path fail here.
 import numpy as np
 import pytest
 from geoloc.config import checked
-from geoloc.tasks.mmdip.config import MMDIPConfig, VPRConfig
+from geoloc.tasks.mmdip.mmdip_config import MMDIPConfig, VPRConfig
 from geoloc.tasks.mmdip.datasets import NUM_CLASSES
 from geoloc.tasks.mmdip.retrieval import Coder, retrieval_metrics
 

@@ -9,7 +9,7 @@ import torch
 from geoloc.losses.gan import lsgan_d_loss, lsgan_g_loss
 from geoloc.losses.perceptual import VGGPerceptualLoss, resolve_weights
 from geoloc.losses.segmentation import class_weights
-from geoloc.tasks.mmdip.config import MMDIPConfig, SegmentationConfig, TranslationConfig
+from geoloc.tasks.mmdip.mmdip_config import MMDIPConfig, SegmentationConfig, TranslationConfig
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.segmentation import SegmentationTask
 from torchvision.models.vgg import cfgs, make_layers

@@ -10,7 +10,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.tasks import mmdip
 from geoloc.tasks.mmdip import retrieval
-from geoloc.tasks.mmdip.config import MMDIPConfig, TranslationConfig
+from geoloc.tasks.mmdip.mmdip_config import MMDIPConfig, TranslationConfig
 from geoloc.models.fcn import FCN8s
 from geoloc.tasks.mmdip.networks import build_generator, build_segmenter, generator_input
 from geoloc.tasks.mmdip.pipeline import parse

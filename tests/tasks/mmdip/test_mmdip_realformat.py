@@ -17,7 +17,7 @@ from geoloc.tasks.mmdip.datasets import (
     EmptyCitiesDataset,
 )
 from geoloc.tasks.mmdip.pipeline import load_task
-from geoloc.tasks.mmdip.config import DynamicDataConfig
+from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig
 from geoloc.tasks.mmdip.protocol import FROM_GALLERY, FROM_TRAIN
 from geoloc.tasks.mmdip.readers import build_reader
 from geoloc.tasks.mmdip.retrieval import evaluate_retrieval

@@ -15,7 +15,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.models.crossview import CrossViewModelConfig
 from geoloc.tasks.crossview import gallery_build as gallery
-from geoloc.tasks.crossview.config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
+from geoloc.tasks.crossview.crossview_config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
                                            parse_evaluation, parse_training)
 from geoloc.tasks.crossview.datasets import EvalData, build, build_eval, calibration_data, known_heading
 from geoloc.gallery.folder import check_target

@@ -6,7 +6,8 @@ Two settings, each case in its own process so that its peak memory is its own:
 2. A country-scale gallery: 1,000,000 references. 1M x 4,096 float32 is 16 GB, more than a shared 24 GB machine
    should hold, so the default is D = 512 (2 GB); pass --large-dim 4096 on a machine that has the memory.
    Exact search (torch, chunked) side by side with each approximate GalleryIndex kind in --kinds (ivfpq,
-   pq_refine, ivfpq_refine, pq_sq8, hnsw), each over a sweep of its search knob (--nprobe, --k-factor, --ef-search):
+   pq_refine, ivfpq_refine, pq_sq8, ivfpq_disk, hnsw), each over a sweep of its search knob (--nprobe, --k-factor,
+   --ef-search; ivfpq_disk is saved and loaded back first, so that it is searched with its float16 rows on disk):
    recall kept (approximate / exact R@1 and R@10), ms per query, index size (FAISS serialize_index bytes), the
    process's peak memory rise and the build time. Only --large-queries queries are timed (default 1,000); the
    gallery is full size. The load average (/proc/loadavg) is printed with each case: the CPU may be shared.
@@ -204,7 +205,7 @@ def run_case(args):
 
 
 SWEPT = {"ivfpq": "nprobe", "pq_refine": "k_factor", "ivfpq_refine": "nprobe", "pq_sq8": "k_factor",
-         "hnsw": "ef_search"}
+         "ivfpq_disk": "nprobe", "hnsw": "ef_search"}
 IVF_K_FACTOR = 16  # ivfpq_refine sweeps nprobe at this shortlist multiple
 
 
@@ -219,6 +220,9 @@ def run_approximate(args, kind, query, ref):
                          coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m,
                          ef_construction=args.ef_construction)
     _, build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)))
+    disk = {}
+    if kind == "ivfpq_disk":  # searched as a saved gallery is: the codes in memory, the float16 rows mapped
+        index, disk = reopened(index, args)
     knob = SWEPT[kind]
     sweep = []
     for value in getattr(args, knob):
@@ -229,8 +233,28 @@ def run_approximate(args, kind, query, ref):
             times.append(time_s)
         sweep.append(dict(knob=knob, value=value, times_s=times, recall=recall_from_topk(idx.numpy())))
     peak = _status("VmHWM")  # before serialize_index makes its copy
+    if disk:
+        before = disk.pop("rss_before_load")
+        disk["rss_after_search_mib"] = {k: _status(k) - before[k] for k in before}
     return dict(build_s=build_s, sweep=sweep, peak_before_size_mib=peak,
-                index_mib=len(faiss.serialize_index(index._index)) / 2**20)
+                index_mib=len(faiss.serialize_index(index._index)) / 2**20, **disk)
+
+
+def reopened(index, args):
+    """ivfpq_disk: save the built index, drop it, load it back (its float16 rows memory-mapped from disk); the
+    resident memory the loaded index adds, and the bytes of its files."""
+    import tempfile
+
+    from geoloc.eval import GalleryIndex
+
+    folder = tempfile.mkdtemp(dir=args.huge_dir)
+    index.save(os.path.join(folder, "gallery.pt"))
+    del index
+    rows = sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder) if f.endswith(".f16"))
+    before = {k: _status(k) for k in ("RssAnon", "RssFile")}  # memory of its own; pages of mapped files
+    loaded = GalleryIndex.load(os.path.join(folder, "gallery.pt"))
+    return loaded, {"rss_before_load": before, "rss_after_load_mib": {k: _status(k) - before[k] for k in before},
+                    "rows_file_mib": rows / 2**20}
 
 
 def recall_from_topk(idx):
@@ -254,7 +278,8 @@ def fmt_recall(r):
 def describe(kind, args):
     return {"ivfpq": f"nlist {args.nlist} m {args.m}x{args.nbits}", "pq_refine": f"m {args.m}x4",
             "ivfpq_refine": f"nlist {args.nlist} m {args.m}x4 k_factor {IVF_K_FACTOR}",
-            "pq_sq8": f"m {args.coarse_m}x4 + SQ8", "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}"}[kind]
+            "pq_sq8": f"m {args.coarse_m}x4 + SQ8", "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}",
+            "ivfpq_disk": f"nlist {args.nlist} m {args.m}x{args.nbits} + f16 rows k_factor {IVF_K_FACTOR}"}[kind]
 
 
 def main(args, argv):
@@ -294,6 +319,12 @@ def main(args, argv):
                          else f"{'':9s} {'':9s} {'':7s}")
                 print(f"  {name:60s} {ms * best:8.2f}{spread:>8s} {kept[0]:>8s} {kept[1]:>9s} {sizes}  "
                       f"{fmt_recall(p['recall'])}   {r['load'] if i == 0 else ''}")
+            if "rows_file_mib" in r:
+                load, search = r["rss_after_load_mib"], r["rss_after_search_mib"]
+                print(f"  {'':4s}(loaded from disk, resident: +{load['RssAnon']:.0f} MiB own + {load['RssFile']:.0f} "
+                      f"MiB of mapped pages after the load, +{search['RssAnon']:.0f} + {search['RssFile']:.0f} MiB "
+                      f"after the searches; float16 rows on disk {r['rows_file_mib']:.0f} MiB, not counted in the "
+                      f"index MiB)")
     if args.huge_n:
         r = spawn("huge", argv)
         results.append(r)

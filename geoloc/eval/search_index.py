@@ -15,10 +15,15 @@ Two backends:
     sub-quantisers (``coarse_m / 2`` bytes), the best ``k_factor * k`` re-ranked from 8-bit scalar-quantised copies
     of the vectors (``IndexRefine`` over ``IndexScalarQuantizer`` SQ8, FAISS's ``"PQ32x4fs,Refine(SQ8)"``): dim + 16
     bytes a reference, a quarter of the float32 vectors that ``pq_refine`` keeps (0.49 GiB per million at D 512).
+  - ``ivfpq_disk``: ``ivfpq``'s codes in memory (``m`` bytes a reference at ``nbits=8``: 64 by default), their
+    best ``k_factor * k`` candidates re-ranked by exact inner products with the full descriptors, kept as float16
+    rows in a file beside the index and read memory-mapped (half_vectors.py): the memory a search needs is the
+    codes and the pages of the rows it re-ranks, not the 2 x dim bytes a reference that the file holds.
   - ``hnsw``: a navigable small-world graph over the full vectors (``IndexHNSWFlat``; Malkov & Yashunin, TPAMI
     2018): ``hnsw_m`` links per node, ``ef_construction`` / ``ef_search`` candidates while building / searching.
   ``pq_refine``, ``ivfpq_refine`` and ``hnsw`` return exact inner products of the rows they return; ``pq_sq8``
-  returns SQ8 estimates (within about 1e-3), ``ivfpq`` PQ estimates.
+  returns SQ8 estimates (within about 1e-3), ``ivfpq_disk`` those of the float16 rows (within about 1e-3),
+  ``ivfpq`` PQ estimates.
 
 Descriptors are L2-normalised, so the largest inner product is the smallest distance 2 - 2 a.b. What is added,
 trained on or searched goes through `geoloc.eval.descriptors.unit_rows`, as in `recall_at_k`: rows off unit length
@@ -42,6 +47,7 @@ import torch
 
 from geoloc.eval.candidates import ordered
 from geoloc.eval.descriptors import as_float_tensor, unit_rows
+from geoloc.eval.half_vectors import HalfVectors
 from geoloc.eval.index_structure import check_structure
 from geoloc.eval.scoring import SCORE_BUDGET, top_k
 
@@ -50,8 +56,10 @@ __all__ = ["GalleryIndex", "import_faiss"]
 _FORMAT = "geoloc.gallery/1"
 _ADD_BLOCK = 65536
 TRAIN_POINTS = 200_000  # the most vectors the quantisers train on (a seeded sample of them)
-KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "hnsw")
-PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8")  # their sub-quantisers must divide dim
+KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "ivfpq_disk", "hnsw")
+PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "ivfpq_disk")  # their sub-quantisers must divide dim
+IVF_KINDS = ("ivfpq", "ivfpq_refine", "ivfpq_disk")  # inverted lists: nlist trained, nprobe searched
+BYTE_CODE_KINDS = ("ivfpq", "ivfpq_disk")  # nbits-bit PQ codes (the fast-scan kinds' are 4-bit)
 REFINE_KINDS = ("pq_refine", "ivfpq_refine", "pq_sq8")  # IndexRefine: k_factor * k candidates re-ranked
 
 
@@ -94,7 +102,7 @@ def _hnsw(faiss, dim, p):
 
 
 _BUILDERS = {"flat": _flat, "ivfpq": _ivfpq, "pq_refine": _pq_refine, "ivfpq_refine": _ivfpq_refine,
-             "pq_sq8": _pq_sq8, "hnsw": _hnsw}
+             "pq_sq8": _pq_sq8, "ivfpq_disk": _ivfpq, "hnsw": _hnsw}  # ivfpq_disk: ivfpq + its float16 rows
 
 
 def sub_quantisers(kind: str, params: dict) -> tuple[str, int]:
@@ -108,7 +116,7 @@ def _set_search_knobs(faiss, kind: str, index, p: dict) -> None:
         index = faiss.downcast_index(index)
         index.k_factor = float(p["k_factor"])
         index = faiss.downcast_index(index.base_index)
-    if kind in ("ivfpq", "ivfpq_refine"):
+    if kind in IVF_KINDS:
         index.nprobe = p["nprobe"]
     if kind == "hnsw":
         faiss.downcast_index(index).hnsw.efSearch = p["ef_search"]
@@ -119,10 +127,10 @@ def training_points(kind: str, params: dict) -> tuple[int, str]:
     than centroids. IVF kinds train ``nlist`` coarse centroids; PQ kinds 2^bits centroids per sub-quantiser (8 bits
     for ivfpq by default, 4 for the fast-scan kinds)."""
     parts = []
-    if kind in ("ivfpq", "ivfpq_refine"):
+    if kind in IVF_KINDS:
         parts.append((params["nlist"], f"{params['nlist']} inverted lists (nlist)"))
     if kind in PQ_KINDS:
-        bits = params["nbits"] if kind == "ivfpq" else 4  # the fast-scan kinds' codes are 4-bit
+        bits = params["nbits"] if kind in BYTE_CODE_KINDS else 4  # the fast-scan kinds' codes are 4-bit
         parts.append((2 ** bits, f"{2 ** bits} centroids per sub-quantiser ({bits}-bit codes)"))
     if not parts:
         return 0, "nothing"
@@ -152,9 +160,10 @@ class IndexParams:
 
     nlist: int = 1024  # IVF kinds: inverted lists (capped at N / 39, FAISS's minimum training points per list)
     m: int = 64  # PQ kinds: sub-quantisers; must divide the descriptor dim
-    nbits: int = 8  # ivfpq: bits per sub-code (the refine kinds use 4-bit fast-scan codes)
+    nbits: int = 8  # ivfpq, ivfpq_disk: bits per sub-code (the refine kinds use 4-bit fast-scan codes)
     nprobe: int = 16  # IVF kinds: lists visited per query
-    k_factor: int = 16  # refine kinds: k_factor * k PQ candidates re-ranked (pq_sq8: from their SQ8 codes)
+    k_factor: int = 16  # refine kinds, ivfpq_disk: k_factor * k PQ candidates re-ranked (pq_sq8: from their SQ8
+    # codes, ivfpq_disk: from their float16 rows on disk)
     coarse_m: int = 32  # pq_sq8: 4-bit sub-quantisers of the coarse code (coarse_m / 2 bytes a reference)
     hnsw_m: int = 32  # hnsw: links per node
     ef_construction: int = 40  # hnsw: candidate list while building
@@ -175,7 +184,7 @@ class GalleryIndex:
         dim: descriptor dimension.
         backend: ``"torch"`` (exact) or ``"faiss"``.
         kind: ``"flat"`` (exact) or, with FAISS, ``"ivfpq"``, ``"pq_refine"``, ``"ivfpq_refine"``, ``"pq_sq8"``,
-            ``"hnsw"`` (module docstring).
+            ``"ivfpq_disk"``, ``"hnsw"`` (module docstring).
         params: the FAISS kinds' knobs (IndexParams); `knobs` given by name replace single ones of them.
         device: torch backend only: where the gallery lives (default: where the first added descriptors are).
         chunk_size: queries per block of the torch search (`geoloc.eval.scoring`).
@@ -195,13 +204,14 @@ class GalleryIndex:
         if kind in PQ_KINDS and dim % sub_quantisers(kind, vars(params))[1]:
             knob, m = sub_quantisers(kind, vars(params))
             raise ValueError(f"{kind} needs {knob} (sub-quantisers) to divide dim, got dim={dim}, {knob}={m}")
-        if kind == "ivfpq" and params.nbits > 16:
-            raise ValueError(f"ivfpq needs nbits (bits per sub-code) in 1..16, got {params.nbits}")
+        if kind in BYTE_CODE_KINDS and params.nbits > 16:
+            raise ValueError(f"{kind} needs nbits (bits per sub-code) in 1..16, got {params.nbits}")
         self.dim, self.backend, self.kind = int(dim), backend, kind
         self.params = {f.name: int(getattr(params, f.name)) for f in fields(IndexParams)}
         self.chunk_size = int(chunk_size)
         self._device = torch.device(device) if device is not None else None
         self._descriptors: torch.Tensor | None = None  # torch backend
+        self._half = HalfVectors(self.dim) if kind == "ivfpq_disk" else None  # the rows ivfpq_disk re-ranks from
         if self.chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         self._index = None
@@ -254,7 +264,10 @@ class GalleryIndex:
             if not self._index.is_trained:
                 self.train(x)
             for s in range(0, x.shape[0], _ADD_BLOCK):  # IVF-PQ holds a residual per added row: add in blocks
-                self._index.add(np.ascontiguousarray(x[s:s + _ADD_BLOCK].cpu().numpy(), dtype=np.float32))
+                block = np.ascontiguousarray(x[s:s + _ADD_BLOCK].cpu().numpy(), dtype=np.float32)
+                self._index.add(block)
+                if self._half is not None:
+                    self._half.append(block)
             return self
         if self._device is None:
             self._device = x.device
@@ -304,6 +317,8 @@ class GalleryIndex:
             target.ntotal += source.ntotal
         else:
             _merge_from(faiss, target, source)
+        if self._half is not None:
+            self._half.extend(other._half)
         return self
 
     def _writable(self, what: str) -> None:
@@ -325,6 +340,8 @@ class GalleryIndex:
             scores, rows = top_k(q, self._descriptors, k, chunk_size=self.chunk_size)
             return scores.float(), rows
         q = np.ascontiguousarray(q.cpu().numpy(), dtype=np.float32)
+        if self.kind == "ivfpq_disk":
+            return self._reranked(q, k)
         if self.kind == "flat":  # one call: the exact path of recall_at_k(backend="faiss")
             scores, idx = self._index.search(q, k)
             return ordered(torch.from_numpy(scores), torch.from_numpy(idx))
@@ -334,6 +351,21 @@ class GalleryIndex:
         blocks = [self._index.search(q[s:s + step], k) for s in range(0, q.shape[0], step)]
         return ordered(torch.from_numpy(np.concatenate([b[0] for b in blocks])),
                        torch.from_numpy(np.concatenate([b[1] for b in blocks])))
+
+    def _reranked(self, q: np.ndarray, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """ivfpq_disk: the codes' best k_factor * k rows per query, scored again with the float16 rows, best k."""
+        shortlist = min(k * self.params["k_factor"], len(self))
+        scores, rows = [], []
+        for s in range(0, q.shape[0], 256):  # 256 queries' shortlisted rows at a time
+            _, candidates = self._index.search(q[s:s + 256], shortlist)
+            found = candidates >= 0  # a query whose nprobe lists hold fewer rows than the shortlist
+            vectors = self._half.gather(np.where(found, candidates, 0).ravel()).reshape(*candidates.shape, self.dim)
+            exact = np.einsum("qd,qkd->qk", q[s:s + 256], vectors)
+            scores.append(np.where(found, exact, -np.inf).astype(np.float32))
+            rows.append(candidates)
+        best_scores, best_rows = ordered(torch.from_numpy(np.concatenate(scores)),
+                                         torch.from_numpy(np.concatenate(rows)))
+        return best_scores[:, :k], best_rows[:, :k]
 
     def vectors(self) -> torch.Tensor:
         """N x dim: the stored descriptors of a flat (exact) index, as they were added (unit rows), where the
@@ -359,6 +391,8 @@ class GalleryIndex:
             faiss.write_index(self._index, str(tmp_blob))
             state.update(faiss_file=blob.name, faiss_bytes=tmp_blob.stat().st_size)
             tmp_blob.replace(blob)
+            if self._half is not None:
+                state["half_files"] = self._half.write(path.with_suffix(""))
         else:
             state["descriptors"] = None if self._descriptors is None else self._descriptors.cpu()
         tmp = path.with_name(path.name + ".tmp")
@@ -392,6 +426,10 @@ class GalleryIndex:
                 blob = path.with_name(state.get("faiss_file", path.name))  # older records hold the index inside
                 check_structure(faiss, index._index, expected, index.dim, blob)
                 _set_search_knobs(faiss, index.kind, index._index, index.params)
+                if index._half is not None:
+                    index._half = HalfVectors.open(path.parent, state["half_files"], index.dim)
+                    if len(index._half) != len(index):
+                        raise ValueError(f"its float16 rows count {len(index._half)} rows, its index {len(index)}")
             elif state["descriptors"] is not None:
                 index.add(state["descriptors"])
         except ImportError:
@@ -411,6 +449,13 @@ def _merge_from(faiss, target, source) -> None:
 def faiss_file(path: Path) -> Path:
     """Where the FAISS index of the gallery index file `path` is written: beside it, `<stem>.faiss`."""
     return Path(path).with_suffix(".faiss")
+
+
+def index_files(path: Path) -> list[Path]:
+    """Every file `GalleryIndex.save(path)` may write: `path`, its FAISS index and an ivfpq_disk index's float16
+    rows (`<stem>.<i>.f16`, half_vectors.py)."""
+    path = Path(path)
+    return [path, faiss_file(path), *sorted(path.parent.glob(f"{path.stem}.*.f16"))]
 
 
 def _read_faiss(faiss, path: Path, state: dict, mmap: bool):

@@ -7,7 +7,8 @@
   places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
 - references.jsonl, queries.jsonl: the places (places.py);
 - calibration.json: the answers' confidence (confidence.py), or why there is none.
-A FAISS index's codes lie in gallery.faiss beside gallery.pt (GalleryIndex.save).
+A FAISS index's codes lie in gallery.faiss beside gallery.pt, an ivfpq_disk index's float16 rows in gallery.f16
+(GalleryIndex.save).
 
 A part of a gallery built across jobs (gallery.py `build_part`) is such a folder too, with a `part` record in
 gallery.json: a codebook (`role: codebook`, no rows, its index file's `codebook_sha256`) or a shard (`role: shard`,
@@ -43,7 +44,7 @@ from pathlib import Path
 from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine.checkpoint import file_sha256, umask
-from geoloc.eval.search_index import GalleryIndex, faiss_file
+from geoloc.eval.search_index import GalleryIndex, faiss_file, index_files
 from geoloc.gallery.confidence import check_record
 from geoloc.gallery.places import Places, read_places, split_record, write_places
 
@@ -126,8 +127,8 @@ def write_calibration(folder: Path, record: dict) -> None:
 
 def index_digests(path: Path) -> dict[str, str]:
     """{file name: sha256} of the files an index is saved in (GalleryIndex.save): `path` (gallery.pt) and, for a
-    FAISS index, the index file beside it."""
-    return {f.name: file_sha256(f) for f in (Path(path), faiss_file(path)) if f.is_file()}
+    FAISS index, the index file beside it (and an ivfpq_disk index's float16 rows)."""
+    return {f.name: file_sha256(f) for f in index_files(path) if f.is_file()}
 
 
 def write_gallery_folder(folder: str | Path, fill, overwrite: bool = False) -> dict:

@@ -40,7 +40,8 @@ class GalleryConfig(IndexParams):
     overwrite: bool = False  # gallery.save may replace a gallery already in DIR
     load: str | None = None  # DIR: answer the queries from this saved gallery
     backend: str = "torch"  # torch (exact, chunked) | faiss
-    kind: str = "auto"  # auto | flat (exact) | ivfpq | pq_refine | ivfpq_refine | pq_sq8 | hnsw (from ivfpq on: faiss)
+    kind: str = "auto"  # auto | flat (exact) | ivfpq | pq_refine | ivfpq_refine | pq_sq8 | ivfpq_disk | hnsw (from
+    # ivfpq on: faiss)
     auto_exact_below: int = 100_000  # kind=auto: flat below this many references, AUTO_APPROXIMATE (faiss) above
     max_memory: str = "8GiB"  # kind=auto: AUTO_COMPACT when the float32 vectors (N x dim x 4 bytes) exceed this
     train_only: bool = False  # with save: write the trained codebook only (no rows), for gallery.codebook

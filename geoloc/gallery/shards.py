@@ -22,7 +22,7 @@ from pathlib import Path
 
 from geoloc.config import ConfigError
 from geoloc.engine.checkpoint import file_sha256
-from geoloc.eval.search_index import GalleryIndex, faiss_file
+from geoloc.eval.search_index import GalleryIndex, index_files
 from geoloc.gallery.confidence import across_jobs
 from geoloc.gallery.folder import (INDEX, INFO, read_calibration, read_info, write_calibration,
                                                    write_gallery_folder)
@@ -127,7 +127,7 @@ def check_index_files(folder: Path, info: dict) -> None:
     copied from another shard of the same row count would merge, and its rows would stand for other references."""
     rebuild = rebuild_shard(folder, info)
     recorded = info.get("index_sha256")
-    names = (INDEX, faiss_file(Path(INDEX)).name)
+    names = [f.name for f in index_files(folder / INDEX)]
     if not (isinstance(recorded, dict) and INDEX in recorded and set(recorded) <= set(names)):
         raise ConfigError(f"the shard in {folder}: {folder / INFO} records no digest of its index files "
                           f"(index_sha256): it was written by an earlier geoloc or edited. {rebuild}")

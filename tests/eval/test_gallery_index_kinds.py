@@ -1,4 +1,4 @@
-"""The approximate FAISS gallery kinds (pq_refine, ivfpq_refine, pq_sq8, hnsw), galleries merged from parts, and
+"""The approximate FAISS gallery kinds (pq_refine, ivfpq_refine, pq_sq8, ivfpq_disk, hnsw), galleries merged from parts, and
 gallery.kind in GalleryConfig."""
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def faiss_knobs(index: GalleryIndex) -> dict:
     if index.kind in ("pq_refine", "ivfpq_refine", "pq_sq8"):
         knobs["k_factor"] = inner.k_factor
         inner = faiss.downcast_index(inner.base_index)
-    if index.kind in ("ivfpq", "ivfpq_refine"):
+    if index.kind in ("ivfpq", "ivfpq_refine", "ivfpq_disk"):
         knobs["nprobe"] = inner.nprobe
     if index.kind == "hnsw":
         knobs["ef_search"] = inner.hnsw.efSearch
@@ -95,7 +95,7 @@ def test_pq_sq8_keeps_the_exact_top1_from_a_quarter_of_the_bytes(easy, tmp_path)
     assert DIM + SMALL["coarse_m"] / 2 <= per_reference < DIM + SMALL["coarse_m"] / 2 + 2, per_reference
 
 
-@pytest.mark.parametrize("kind", ["flat", "pq_sq8", "ivfpq_refine", "torch"])
+@pytest.mark.parametrize("kind", ["flat", "pq_sq8", "ivfpq_refine", "ivfpq_disk", "torch"])
 def test_a_gallery_merged_from_parts_filled_from_one_codebook_equals_the_one_built_whole(easy, kind):
     query, reference = easy
     backend, kind = ("torch", "flat") if kind == "torch" else ("faiss", kind)
@@ -115,7 +115,7 @@ def test_a_gallery_merged_from_parts_filled_from_one_codebook_equals_the_one_bui
         merged.merge(GalleryIndex(DIM + 8, backend=backend, kind=kind, **SMALL))
 
 
-@pytest.mark.parametrize("kind", ["ivfpq", *NEW_KINDS, "pq_sq8"])
+@pytest.mark.parametrize("kind", ["ivfpq", *NEW_KINDS, "pq_sq8", "ivfpq_disk"])
 def test_save_load_round_trip_keeps_results_and_search_knobs(easy, tmp_path, kind):
     query, reference = easy
     index = GalleryIndex(DIM, backend="faiss", kind=kind, nbits=4, **SMALL).add(reference)

@@ -20,6 +20,7 @@ from helpers.gallery_runs import META, gallery_evaluate, pairs_split
 
 N, DIM = 120, 32
 KNOBS = dict(coarse_m=8, k_factor=8)
+KIND_KNOBS = {"pq_sq8": KNOBS, "ivfpq_disk": dict(m=8, nbits=4, k_factor=8)}  # trained kinds, at 40-row shards
 
 
 def descriptors(seed=0):
@@ -46,7 +47,7 @@ def one_faiss_thread():
 
 def shards(monkeypatch, tmp_path, kind, count=3, codebook=None, prefix="shard", **extra):
     """The shard folders of `count` jobs (a trained kind: filled from `codebook`)."""
-    knobs = dict(backend="faiss", kind=kind, **{**(KNOBS if kind == "pq_sq8" else {}), **extra})
+    knobs = dict(backend="faiss", kind=kind, **{**KIND_KNOBS.get(kind, {}), **extra})
     folders = []
     for i in range(count):
         folder = tmp_path / f"{prefix}{i}"
@@ -56,19 +57,19 @@ def shards(monkeypatch, tmp_path, kind, count=3, codebook=None, prefix="shard", 
     return folders
 
 
-def codebook_of(monkeypatch, tmp_path, name="codebook", seed=0):
+def codebook_of(monkeypatch, tmp_path, name="codebook", seed=0, kind="pq_sq8"):
     folder = tmp_path / name
-    job(monkeypatch, tmp_path, seed=seed, save=str(folder), train_only=True, backend="faiss", kind="pq_sq8",
-        **KNOBS)
+    job(monkeypatch, tmp_path, seed=seed, save=str(folder), train_only=True, backend="faiss", kind=kind,
+        **KIND_KNOBS[kind])
     return folder
 
 
-@pytest.mark.parametrize("kind", ["flat", "pq_sq8"])
+@pytest.mark.parametrize("kind", ["flat", "pq_sq8", "ivfpq_disk"])
 def test_a_gallery_merged_from_three_shards_scores_exactly_as_the_one_job_gallery(monkeypatch, tmp_path, kind):
     pytest.importorskip("faiss")
     whole = tmp_path / "whole"
-    job(monkeypatch, tmp_path, save=str(whole), backend="faiss", kind=kind, **(KNOBS if kind == "pq_sq8" else {}))
-    codebook = codebook_of(monkeypatch, tmp_path) if kind == "pq_sq8" else None
+    job(monkeypatch, tmp_path, save=str(whole), backend="faiss", kind=kind, **KIND_KNOBS.get(kind, {}))
+    codebook = codebook_of(monkeypatch, tmp_path, kind=kind) if kind in KIND_KNOBS else None
     folders = shards(monkeypatch, tmp_path, kind, codebook=codebook)
     assert [json.loads((f / "gallery.json").read_text())["num_references"] for f in folders] == [40, 40, 40]
     merged = tmp_path / "merged"
@@ -190,14 +191,18 @@ def test_an_out_folder_among_the_shards_is_refused_before_any_work(monkeypatch, 
     assert {f: {p.name: p.read_bytes() for p in f.iterdir()} for f in folders} == before
 
 
-@pytest.mark.parametrize("backend, copied", [("faiss", "gallery.faiss"), ("torch", "gallery.pt")])
-def test_a_shard_whose_index_file_came_from_another_shard_is_refused(monkeypatch, tmp_path, backend, copied):
+@pytest.mark.parametrize("backend, kind, copied", [("faiss", "flat", "gallery.faiss"), ("torch", "flat", "gallery.pt"),
+                                                   ("faiss", "ivfpq_disk", "gallery.0.f16")])
+def test_a_shard_whose_index_file_came_from_another_shard_is_refused(monkeypatch, tmp_path, backend, kind, copied):
     """Two shards of one row count: shard 2's index file copied from shard 1 merged with exit 0, and the recall was
-    wrong. Each shard's gallery.json records the digest of its own index files."""
+    wrong. Each shard's gallery.json records the digest of its own index files (an ivfpq_disk's float16 rows
+    too)."""
+    codebook = {"codebook": str(codebook_of(monkeypatch, tmp_path, kind=kind))} if kind in KIND_KNOBS else {}
     folders = []
     for i in range(3):
         folders.append(tmp_path / f"shard{i}")
-        job(monkeypatch, tmp_path, save=str(folders[-1]), num_shards=3, shard_index=i, backend=backend, kind="flat")
+        job(monkeypatch, tmp_path, save=str(folders[-1]), num_shards=3, shard_index=i, backend=backend, kind=kind,
+            **codebook, **KIND_KNOBS.get(kind, {}))
     shutil.copyfile(folders[1] / copied, folders[2] / copied)
     out = tmp_path / "out"
     with pytest.raises(ConfigError, match=rf"the shard in {folders[2]}: its index file {folders[2] / copied} is not "

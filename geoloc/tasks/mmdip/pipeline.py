@@ -30,13 +30,12 @@ from geoloc.tasks.mmdip.generator_loss import check_generator_loss
 from geoloc.tasks.mmdip.joint import JointTask
 from geoloc.tasks.mmdip.networks import check_segmenters
 from geoloc.tasks.mmdip.readers import build_reader, check_reader
-from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
+from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id, print_recall
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
 from geoloc.tasks.mmdip.shapes import check_image_size
 from geoloc.tasks.mmdip.stored_config import upgraded_config
 
 TRANSFORM_KEYS = ("image_size",)  # must stay as trained
-IMAGE_KEYS = ("L1", "L2", "PSNR", "SSIM")
 
 
 def vpr_dir(run_dir: Path, dataset: str) -> Path:
@@ -140,17 +139,6 @@ def sweep_metric(cfg: DictConfig) -> str:
 
 def _fmt(metrics: dict) -> str:
     return "  ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float) and "IoU_" not in k)
-
-
-def print_recall(metrics: dict, title: str) -> None:
-    print(f"\n{title} ({metrics['num_queries']} queries; vocabulary from the {metrics['vocabulary_source']}, "
-          f"gallery SPM from the {metrics['gallery_seg']} segmentation)")
-    rows = [("BoW+SPM", ""), ("BoW", "BoW/"), ("SPM", "SPM/"), ("dynamic image BoW", "dynamic-BoW/")]
-    keys = [k for k in metrics if k.startswith("R@")]
-    print("| method | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
-    for name, prefix in rows:
-        print(f"| {name} | " + " | ".join(f"{metrics[prefix + k]:.4f}" for k in keys) + " |")
-    print("recovered queries against their static views: " + _fmt({k: metrics[k] for k in IMAGE_KEYS}))
 
 
 def print_segmentation(metrics: dict, title: str) -> None:

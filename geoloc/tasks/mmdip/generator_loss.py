@@ -68,11 +68,6 @@ def pix2pix(perceptual_weights: str, perceptual_layers: list[str], training: boo
     return WeightedGeneratorLoss(adv, l1, perceptual, perceptual_weights, perceptual_layers, training)
 
 
-def check_generator_loss(cfg: TranslationConfig) -> None:
-    """The generator loss's name and keys against the registry, without building it."""
-    registry.check("generator_loss", cfg.generator_loss)
-
-
 def build_generator_loss(cfg: TranslationConfig, training: bool) -> nn.Module:
     return registry.build("generator_loss", cfg.generator_loss, perceptual_weights=cfg.perceptual_weights,
                           perceptual_layers=list(cfg.perceptual_layers), training=training)

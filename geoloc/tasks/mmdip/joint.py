@@ -60,7 +60,11 @@ class JointTask(Task):
     def translate(self, dynamic: torch.Tensor, mask: torch.Tensor | None = None):
         """dynamic B x 3 x H x W in [0, 1] -> (segmentation logits, recovered static image in [-1, 1])."""
         logits = self.seg(dynamic)
-        return logits, self.generator(generator_input(self.tcfg.variant, dynamic, logits, mask))
+        return logits, self.recover(dynamic, logits, mask)
+
+    def recover(self, dynamic: torch.Tensor, logits: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """The generator's half of translate: the recovered static image from the segmentation logits."""
+        return self.generator(generator_input(self.tcfg.variant, dynamic, logits, mask))
 
     def training_step(self, batch, engine):
         gen_opt, disc_opt = self._optimizers

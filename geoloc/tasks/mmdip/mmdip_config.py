@@ -3,10 +3,10 @@
 The `task` section holds the method (phase 1 segmentation, phase 2 translation, VPR coding); the `dataset`
 section says where the images come from. Unknown keys and bad values raise geoloc.config.ConfigError.
 
-Three parts are registered components with keys of their own, checked against their signatures (by networks.py,
-generator_loss.py and readers.py, which declare their kinds): the segmenter (`task.segmentation.model`, its keys
-under `task.segmentation.<segmenter>`), the generator loss (`task.translation.generator_loss`, a section with
-`name`) and the dataset reader (`dataset.name`, its keys beside the shared ones, as the cross-view dataset does).
+Three parts are registered components with keys of their own, which parse_sections checks against their factories'
+signatures: the segmenter (`task.segmentation.model`, its keys under `task.segmentation.<segmenter>`), the generator
+loss (`task.translation.generator_loss`, a section with `name`) and the dataset reader (`dataset.name`, its keys
+beside the shared ones). networks.py, generator_loss.py and readers.py declare the kinds; the package imports them.
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from geoloc import registry
 from geoloc.config import ConfigError, checked
+from geoloc.engine import TrainerConfig
 
 VARIANTS = ("ssggnet", "ssggnet_sm", "pix2pix", "mgan")
 
@@ -33,12 +35,16 @@ class SegmentationConfig:
     lr: float = 2e-3
     class_weight_formula: str = "paper"  # paper (eq. 1) | authors (1/ln(100 r + 1.02))
     # {segmenter: its own keys}, written task.segmentation.<segmenter>.<key> (e.g. unet.num_downs); task_config()
-    # fills it, networks.check_segmenters checks each against that segmenter's signature
+    # fills it, parse_sections checks each against that segmenter's signature
     segmenter_keys: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
             raise ValueError("task.segmentation.epochs and batch_size must be >= 1 and lr > 0")
+
+    def section(self, name: str) -> dict:
+        """The registry section of segmenter `name`: its name and its own keys."""
+        return {"name": name, **self.segmenter_keys.get(name, {})}
 
 
 @dataclass
@@ -129,6 +135,10 @@ class DynamicDataConfig:
         if len(self.image_size) != 2 or min(self.image_size) < 16 or any(s % 8 for s in self.image_size):
             raise ValueError(f"dataset.image_size must be [H, W], multiples of 8 and >= 16, got {self.image_size}")
 
+    def reader_section(self) -> dict:
+        """The registry section of the reader: its name, module and own keys."""
+        return {"name": self.name, "module": self.module, **self.reader_keys}
+
 
 SEGMENTATION_KEYS = tuple(f.name for f in fields(SegmentationConfig) if f.name != "segmenter_keys")
 SHARED_DATA_KEYS = tuple(f.name for f in fields(DynamicDataConfig) if f.name != "reader_keys")
@@ -138,8 +148,42 @@ def _plain(section) -> dict:
     return OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section or {})
 
 
+def parse_sections(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfig]:
+    """train.py's task, dataset and trainer sections, checked, and every registered part they name checked against
+    the registry: the segmenter and each task.segmentation.<segmenter> given, the generator loss, and the reader,
+    which must have labels to train on."""
+    task, data = _task_section(cfg.task), _data_section(cfg.dataset)
+    task_cfg, data_cfg = checked(task, MMDIPConfig, "task"), checked(data, DynamicDataConfig, "dataset")
+    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
+    seg = task_cfg.segmentation
+    registry.import_module(seg.module, "task.segmentation")
+    registry.lookup("segmenter", seg.model)
+    for name in seg.segmenter_keys:
+        if name not in registry.names("segmenter"):
+            raise ConfigError(f"task.segmentation.{name} is neither a key of task.segmentation nor a registered "
+                              f"segmenter ({registry.names('segmenter')}); a segmenter's own keys go under "
+                              f"task.segmentation.<segmenter>")
+    for name in dict.fromkeys([seg.model, *seg.segmenter_keys]):
+        registry.check("segmenter", seg.section(name), where=f"task.segmentation.{name}")
+    registry.check("generator_loss", task_cfg.translation.generator_loss)
+    registry.check("mmdip_dataset", data_cfg.reader_section())
+    if getattr(registry.find("mmdip_dataset", data_cfg.reader_section()), "evaluation_only", False):
+        raise ConfigError(f"dataset={data_cfg.name} has no labels: it is for evaluation only (evaluate.py ckpt=...)")
+    return task_cfg, data_cfg, trainer_cfg
+
+
 def task_config(section) -> MMDIPConfig:
     """The `task` section, checked; each task.segmentation.<segmenter> sub-section goes to segmenter_keys."""
+    return checked(_task_section(section), MMDIPConfig, "task")
+
+
+def data_config(section) -> DynamicDataConfig:
+    """The `dataset` section, checked: the shared keys here, the reader's own kept in reader_keys (readers.py
+    checks them against the reader's signature when it builds the reader)."""
+    return checked(_data_section(section), DynamicDataConfig, "dataset")
+
+
+def _task_section(section) -> dict:
     task = _plain(section)
     segmentation = _plain(task.get("segmentation"))
     own = {k: segmentation.pop(k) for k in list(segmentation) if k not in SEGMENTATION_KEYS}
@@ -150,13 +194,10 @@ def task_config(section) -> MMDIPConfig:
                               f"task.segmentation.<segmenter>.<key>, e.g. task.segmentation.unet.num_downs")
     if "segmentation" in task:
         task["segmentation"] = {**segmentation, "segmenter_keys": own}
-    return checked(task, MMDIPConfig, "task")
+    return task
 
 
-def data_config(section) -> DynamicDataConfig:
-    """The `dataset` section, checked: the shared keys here, the reader's own kept in reader_keys (readers.py
-    checks them against the reader's signature)."""
+def _data_section(section) -> dict:
     data = _plain(section)
     shared = {k: v for k, v in data.items() if k in SHARED_DATA_KEYS}
-    return checked({**shared, "reader_keys": {k: v for k, v in data.items() if k not in SHARED_DATA_KEYS}},
-                   DynamicDataConfig, "dataset")
+    return {**shared, "reader_keys": {k: v for k, v in data.items() if k not in SHARED_DATA_KEYS}}

@@ -19,7 +19,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoloc import registry
-from geoloc.config import ConfigError
 from geoloc.models.erfnet import ERFNet
 from geoloc.models.fcn import FCN8s
 from geoloc.models.patchgan import PatchGAN
@@ -45,29 +44,11 @@ def unet(num_classes: int, num_downs: int = 5, ngf: int = 32) -> UNet:
     return UNet(3, num_classes, num_downs=num_downs, ngf=ngf, final=None, dropout=False)
 
 
-def check_segmenters(cfg: SegmentationConfig) -> None:
-    """The chosen segmenter, and every task.segmentation.<segmenter> section given, against the registry: an
-    unknown name or key fails here, before any data."""
-    registry.import_module(cfg.module, "task.segmentation")
-    registry.lookup("segmenter", cfg.model)
-    for name in cfg.segmenter_keys:
-        if name not in registry.names("segmenter"):
-            raise ConfigError(f"task.segmentation.{name} is neither a key of task.segmentation nor a registered "
-                              f"segmenter ({registry.names('segmenter')}); a segmenter's own keys go under "
-                              f"task.segmentation.<segmenter>")
-    for name in dict.fromkeys([cfg.model, *cfg.segmenter_keys]):
-        registry.check("segmenter", _section(cfg, name), where=f"task.segmentation.{name}")
-
-
 def build_segmenter(cfg: SegmentationConfig, num_classes: int) -> nn.Module:
     """The segmenter task.segmentation.model names, with its keys: B×3×H×W images -> B×num_classes×H×W logits."""
     registry.import_module(cfg.module, "task.segmentation")
-    return registry.build("segmenter", _section(cfg, cfg.model), where=f"task.segmentation.{cfg.model}",
+    return registry.build("segmenter", cfg.section(cfg.model), where=f"task.segmentation.{cfg.model}",
                           num_classes=num_classes)
-
-
-def _section(cfg: SegmentationConfig, name: str) -> dict:
-    return {"name": name, **cfg.segmenter_keys.get(name, {})}
 
 
 def generator_channels(variant: str, num_classes: int) -> int:

@@ -20,23 +20,20 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from geoloc.config import ConfigError, checked, to_yaml
+from geoloc.config import ConfigError, to_yaml
 from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig, MMDIPConfig, data_config, task_config
+from geoloc.tasks.mmdip.mmdip_config import DynamicDataConfig, MMDIPConfig, data_config, parse_sections, task_config
 from geoloc.tasks.mmdip.datasets import NUM_CLASSES, STATIC_CLASSES
-from geoloc.tasks.mmdip.generator_loss import check_generator_loss
 from geoloc.tasks.mmdip.joint import JointTask
-from geoloc.tasks.mmdip.networks import check_segmenters
-from geoloc.tasks.mmdip.readers import build_reader, check_reader
-from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id
+from geoloc.tasks.mmdip.readers import build_reader
+from geoloc.tasks.mmdip.retrieval import evaluate_retrieval, model_id, print_recall
 from geoloc.tasks.mmdip.segmentation import SegmentationTask, batch_confusion, confusion_metrics
 from geoloc.tasks.mmdip.shapes import check_image_size
 from geoloc.tasks.mmdip.stored_config import upgraded_config
 
 TRANSFORM_KEYS = ("image_size",)  # must stay as trained
-IMAGE_KEYS = ("L1", "L2", "PSNR", "SSIM")
 
 
 def vpr_dir(run_dir: Path, dataset: str) -> Path:
@@ -46,13 +43,10 @@ def vpr_dir(run_dir: Path, dataset: str) -> Path:
 
 
 def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfig]:
-    """The run's typed configs; every registered part (segmenter, generator loss, reader) is checked against the
-    registry here, and dataset.image_size against the networks of both phases (shapes.py), so an unknown name or
-    key, or a size phase 2 cannot take, fails before any data is read or generated."""
-    task_cfg = task_config(cfg.task)
-    data_cfg = data_config(cfg.dataset)
-    trainer_cfg = checked(cfg.trainer, TrainerConfig, "trainer")
-    check_parts(task_cfg, data_cfg, training=True)
+    """The run's typed configs, parsed once: the sections and every registered part (segmenter, generator loss,
+    reader) against the registry (parse_sections), dataset.image_size against the networks of both phases
+    (shapes.py), so an unknown name or key, or a size phase 2 cannot take, fails before any data is read."""
+    task_cfg, data_cfg, trainer_cfg = parse_sections(cfg)
     check_image_size(task_cfg, data_cfg)  # phase 2's shapes too: found there, they would cost all of phase 1
     if task_cfg.num_classes != NUM_CLASSES:
         raise ConfigError(f"task.num_classes must be {NUM_CLASSES} (the paper's static classes)")
@@ -67,12 +61,6 @@ def parse(cfg: DictConfig) -> tuple[MMDIPConfig, DynamicDataConfig, TrainerConfi
                           "with init_from= is not supported. Start the run again in a new run dir (leave "
                           "hydra.run.dir at its default).")
     return task_cfg, data_cfg, trainer_cfg
-
-
-def check_parts(task_cfg: MMDIPConfig, data_cfg: DynamicDataConfig, training: bool = False) -> None:
-    check_segmenters(task_cfg.segmentation)
-    check_generator_loss(task_cfg.translation)
-    check_reader(data_cfg, training)
 
 
 def phase_trainer(trainer_cfg: TrainerConfig, epochs: int, run_dir: Path, yaml: str) -> Trainer:
@@ -140,17 +128,6 @@ def sweep_metric(cfg: DictConfig) -> str:
 
 def _fmt(metrics: dict) -> str:
     return "  ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float) and "IoU_" not in k)
-
-
-def print_recall(metrics: dict, title: str) -> None:
-    print(f"\n{title} ({metrics['num_queries']} queries; vocabulary from the {metrics['vocabulary_source']}, "
-          f"gallery SPM from the {metrics['gallery_seg']} segmentation)")
-    rows = [("BoW+SPM", ""), ("BoW", "BoW/"), ("SPM", "SPM/"), ("dynamic image BoW", "dynamic-BoW/")]
-    keys = [k for k in metrics if k.startswith("R@")]
-    print("| method | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
-    for name, prefix in rows:
-        print(f"| {name} | " + " | ".join(f"{metrics[prefix + k]:.4f}" for k in keys) + " |")
-    print("recovered queries against their static views: " + _fmt({k: metrics[k] for k in IMAGE_KEYS}))
 
 
 def print_segmentation(metrics: dict, title: str) -> None:

@@ -120,21 +120,9 @@ def emptycities(root: str | None, image_size) -> PanelFolder:
 emptycities.evaluation_only = True  # a reader without labels says so: training on it is refused at start-up
 
 
-def reader_section(cfg: DynamicDataConfig) -> dict:
-    return {"name": cfg.name, "module": cfg.module, **cfg.reader_keys}
-
-
-def check_reader(cfg: DynamicDataConfig, training: bool = False) -> None:
-    """The reader's name and own keys against the registry, without reading or generating anything; for training,
-    a reader marked `evaluation_only` (no labels) is refused."""
-    registry.check("mmdip_dataset", reader_section(cfg))
-    if training and getattr(registry.find("mmdip_dataset", reader_section(cfg)), "evaluation_only", False):
-        raise ConfigError(f"dataset={cfg.name} has no labels: it is for evaluation only (evaluate.py ckpt=...)")
-
-
 def build_reader(cfg: DynamicDataConfig):
     """The reader `dataset.name` names (the synthetic layout is generated here on first use)."""
-    return registry.build("mmdip_dataset", reader_section(cfg), root=cfg.root, image_size=cfg.image_size,
+    return registry.build("mmdip_dataset", cfg.reader_section(), root=cfg.root, image_size=cfg.image_size,
                           augment=cfg.augment, check_files=cfg.check_files)
 
 

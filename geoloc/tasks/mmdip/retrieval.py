@@ -24,9 +24,10 @@ from geoloc.data.relevance import Relevance
 from geoloc.eval.recall import recall_summary
 from geoloc.eval.scoring import rank
 from geoloc.tasks.mmdip.mmdip_config import VPRConfig
-from geoloc.tasks.mmdip.networks import generator_input
 from geoloc.tasks.mmdip.protocol import FROM_TRAIN, PlaceProtocol, describe
 from geoloc.vpr import Gallery, ORBExtractor, Vocabulary, fused_descriptors, spm_encode
+
+IMAGE_KEYS = ("L1", "L2", "PSNR", "SSIM")
 
 
 def to_uint8(images: torch.Tensor) -> np.ndarray:
@@ -70,7 +71,7 @@ def _run_queries(task, loader, device) -> tuple[np.ndarray, np.ndarray, np.ndarr
         logits = task.seg(dyn)
         _sync(device)
         t1 = time.perf_counter()
-        fake = task.generator(generator_input(task.tcfg.variant, dyn, logits, batch["mask"].to(device)))
+        fake = task.recover(dyn, logits, batch["mask"].to(device))
         _sync(device)
         seconds["segmentation"] += t1 - t0
         seconds["translation"] += time.perf_counter() - t1
@@ -263,3 +264,15 @@ def evaluate_retrieval(task, protocol: PlaceProtocol, cfg: VPRConfig, device, ar
     (artefact_dir / f"metrics_{protocol.split or 'all'}.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return {"metrics": metrics, "ranks": ranks,
             "examples": {**q_inputs, "recovered": rec, "seg": q_segs, "places": q_places}}
+
+
+def print_recall(metrics: dict, title: str) -> None:
+    """evaluate_retrieval's metrics: recall of the fused codes, each cue alone and the raw query; image scores."""
+    print(f"\n{title} ({metrics['num_queries']} queries; vocabulary from the {metrics['vocabulary_source']}, "
+          f"gallery SPM from the {metrics['gallery_seg']} segmentation)")
+    rows = [("BoW+SPM", ""), ("BoW", "BoW/"), ("SPM", "SPM/"), ("dynamic image BoW", "dynamic-BoW/")]
+    keys = [k for k in metrics if k.startswith("R@")]
+    print("| method | " + " | ".join(keys) + " |\n|---|" + "---|" * len(keys))
+    for name, prefix in rows:
+        print(f"| {name} | " + " | ".join(f"{metrics[prefix + k]:.4f}" for k in keys) + " |")
+    print("recovered queries against their static views: " + "  ".join(f"{k} {metrics[k]:.4g}" for k in IMAGE_KEYS))

@@ -5,7 +5,7 @@ Every app is reachable from it:
   composing geoloc/conf/), so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`, and both work from
   an installed wheel;
 - the other subcommands are modules with `USAGE` (text) and `main(args) -> exit code`, imported only when named,
-  so `geoloc --help` needs no extra; serve, robustness and gallery merge compose their yaml of geoloc/conf/ too.
+  so `geoloc --help` needs no extra; serve, robustness, bench and gallery merge compose their geoloc/conf/ yaml.
 """
 
 from __future__ import annotations

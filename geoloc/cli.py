@@ -5,7 +5,7 @@ Every app is reachable from it:
   composing geoloc/conf/), so `geoloc train dataset=cvusa` is `python train.py dataset=cvusa`, and both work from
   an installed wheel;
 - the other subcommands are modules with `USAGE` (text) and `main(args) -> exit code`, imported only when named,
-  so `geoloc --help` works without the optional extras a subcommand needs.
+  so `geoloc --help` needs no extra; serve, robustness, bench and gallery merge compose their geoloc/conf/ yaml.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-from geoloc.config import ConfigError, parse_keys  # noqa: F401  (parse_keys: its home was here)
+from geoloc.config import ConfigError
 from geoloc.entry_points import VERBS
 
 SCRIPTS = {  # name: (the script at a checkout's root that runs the same entry point, what it does)

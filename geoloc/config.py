@@ -43,16 +43,6 @@ def to_yaml(cfg: Any) -> str:
     return OmegaConf.to_yaml(cfg, resolve=True)
 
 
-def parse_keys(args: list[str], schema: type[T], command: str) -> T:
-    """key=value arguments (as Hydra takes them, e.g. `geoloc serve ckpt=... port=8000`) -> a `schema` dataclass;
-    a bad one raises ConfigError naming `command`."""
-    for arg in args:
-        key, sep, _ = arg.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"'{arg}' is not key=value: geoloc {command} takes its settings as key=value")
-    return checked(OmegaConf.from_dotlist(args), schema, command)
-
-
 def top_level(cfg: DictConfig, schema: type[T], where: str) -> T:
     """The fields of dataclass `schema` read from the top level of `cfg` (its other sections are left alone)."""
     return checked({f.name: cfg[f.name] for f in fields(schema) if f.name in cfg}, schema, where)

@@ -1,6 +1,6 @@
 """A wheel trains without its checkout: geoloc is built into a wheel, installed in a fresh venv, and `geoloc train`
 (one tiny epoch), `geoloc evaluate` (saving a gallery) and `geoloc localize` run from an empty folder, composing the
-configs the wheel ships (geoloc/conf/, package data).
+configs the wheel ships (geoloc/conf/, package data), and `geoloc serve` and `robustness` compose theirs.
 
 The fresh venv has no pip and none of geoloc's dependencies of its own: a .pth line puts this interpreter's
 site-packages on its path, and a .pth line does not run the .pth files it points at, so the editable geoloc of this
@@ -90,3 +90,10 @@ def test_a_wheel_trains_evaluates_and_localizes_from_an_empty_folder(tmp_path):
          "out=answers"], cwd=empty)
     answers = [json.loads(line) for line in (empty / "answers" / "localize.jsonl").read_text().splitlines()]
     assert len(answers) == 1 and len(answers[0]["topk"]) == 3
+
+    # the apps that compose their yaml in-process (geoloc/conf/serve.yaml, robustness.yaml) find it in the wheel
+    for args, says in ((["serve", "ckpt=absent.pt", "gallery=gallery"], "checkpoint not found: absent.pt"),
+                       (["robustness", "ckpt=absent.pt", "fovs=[90]"], "ckpt=absent.pt is not a file")):
+        refused = subprocess.run([geoloc, *args], cwd=empty, capture_output=True, text=True, timeout=300,
+                                 check=False)
+        assert refused.returncode == 2 and says in refused.stderr, refused.stderr

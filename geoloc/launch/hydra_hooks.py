@@ -9,7 +9,7 @@
   folder (Hydra copies the resolver cache into each job's config; the job process imports this module when it
   unpickles the callback below, which registers the resolver there too).
 - `compose_conf`: a config composed in-process (apps, tools, benchmarks, tests) exactly as the entry point of the
-  same name composes it, these registrations included;
+  same name composes it, these registrations included; `compose_checked`: into an app's dataclass, checked once;
 - `hydra_overrides_for_rank`: ranks > 0 of a torchrun / srun launch of train.py write into a throwaway Hydra
   dir, so one launch makes one run dir.
 - `RefuseTakenRunDir`: Hydra writes `.hydra/` into the run dir before the app starts, so a run refused only by
@@ -25,9 +25,11 @@ import tempfile
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
+from hydra.errors import HydraException
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from geoloc.config import ConfigError, T, checked
 from geoloc.launch import schemas
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -51,12 +53,21 @@ def compose_conf(name: str, overrides: list[str], conf: str | Path = CONF) -> Di
     """`geoloc/conf/<name>.yaml` with `overrides`, as `python <name>.py <overrides>` composes it; `conf`: another
     folder of configs (a benchmark comparing checkouts)."""
     if not (Path(conf) / f"{name}.yaml").is_file():
-        from geoloc.config import ConfigError
-
         raise ConfigError(f"{conf} holds no {name}.yaml: pass a folder of geoloc configs (geoloc/conf/ of a checkout "
                           "or of the installed package)")
     with initialize_config_dir(str(Path(conf).resolve()), version_base="1.3"):
         return compose(name, overrides=list(overrides))
+
+
+def compose_checked(name: str, schema: type[T], overrides: list[str], where: str) -> T:
+    """`geoloc/conf/<name>.yaml` (extending dataclass `schema`'s defaults, stored as `schema/<name>`) with `overrides`
+    in Hydra's grammar, as the entry points take theirs, checked once into `schema`; ConfigError names `where`."""
+    schemas.store_dataclass(name, schema)
+    try:
+        return checked(compose_conf(name, overrides), schema, where)
+    except HydraException as err:  # Hydra's lines less its pointers: the schema holds every key, none to append (+)
+        said = " ".join(line for line in str(err).splitlines() if not line.startswith(("See https://", "To append")))
+        raise ConfigError(f"bad '{where}' config: {said}") from None
 
 
 class RefuseTakenRunDir(Callback):

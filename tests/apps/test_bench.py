@@ -11,11 +11,12 @@ import os
 import pytest
 import yaml
 from geoloc.apps.bench.checkpoints import checkpoints
-from geoloc.apps.bench.command import bench, split_args
+from geoloc.apps.bench.command import BenchConfig, bench, split_args
 from geoloc.apps.bench.published import matching, published
 from geoloc.apps.bench.bench_sets import TEST_SETS, data_overrides
 from geoloc.config import ConfigError
 from geoloc.launch import run
+from geoloc.launch.hydra_hooks import compose_checked
 
 from conftest import TINY, compose_evaluate, compose_train, write_cvusa
 
@@ -80,6 +81,18 @@ def test_test_sets_read_a_given_root_or_their_embedded_world():
     assert split_args(["sets=[cvusa]", "dataset.max_val=4"]) == (["sets=[cvusa]"], ["dataset.max_val=4"])
     with pytest.raises(ConfigError, match="dataset= is not a geoloc bench key"):
         split_args(["dataset=vigor"])
+
+
+def test_the_commands_keys_take_hydras_grammar_and_a_bad_one_is_refused_before_anything_runs(tmp_path):
+    """geoloc/conf/bench.yaml over BenchConfig, composed as the other verbs compose theirs."""
+    assert compose_checked("bench", BenchConfig, [], "bench") == BenchConfig()
+    cfg = compose_checked("bench", BenchConfig, ["ckpts=[a/best.pt,'b,1']", "headings=[unknown]"], "bench")
+    assert cfg.ckpts == ["a/best.pt", "b,1"] and cfg.headings == ["unknown"]  # quoted: a comma kept in a path
+    for arg, says in (("fovz=[90]", "Could not override 'fovz'.$"), ("+fovz=[90]", "Key 'fovz' not in 'BenchConfig'"),
+                      ("sets", "Error parsing override 'sets' missing EQUAL")):
+        with pytest.raises(ConfigError, match=f"^bad 'bench' config: {says}"):
+            bench([f"ckpts=[{tmp_path / 'absent.pt'}]", f"out={tmp_path / 'out'}", "dataset.max_val=4", arg])
+    assert not (tmp_path / "out").exists()
 
 
 def test_every_published_figure_names_its_source_and_protocol():

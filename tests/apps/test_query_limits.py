@@ -26,6 +26,7 @@ from geoloc.apps.query import QueryError, QueryLimits, check_settings
 from geoloc.apps.serve import create_app, upload
 from geoloc.apps.serve.command import ServeConfig
 from geoloc.config import ConfigError
+from geoloc.launch.hydra_hooks import compose_checked
 
 
 @pytest.fixture
@@ -290,7 +291,7 @@ def test_a_bad_device_names_the_valid_ones_before_the_checkpoint_is_read(capsys)
     assert cli.main(["serve", "ckpt=no/such.pt", "gallery=g", "device=banana"]) == 2
     assert "geoloc serve: device='banana' is not a device: use one of auto, cpu" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="bad 'serve' config: max_topk must be >= 1"):
-        cli.parse_keys(["ckpt=a", "gallery=g", "max_topk=0"], ServeConfig, "serve")
+        compose_checked("serve", ServeConfig, ["ckpt=a", "gallery=g", "max_topk=0"], "serve")
 
 
 def test_a_panorama_with_no_horizon_rows_is_refused_naming_the_file(gallery, tmp_path, monkeypatch):  # noqa: F811

@@ -7,8 +7,9 @@ import json
 
 import numpy as np
 import pytest
-from geoloc.apps.robustness.command import robustness, split_args
+from geoloc.apps.robustness.command import RobustnessConfig, robustness, split_args
 from geoloc.config import ConfigError
+from geoloc.launch.hydra_hooks import compose_checked
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.datasets.cvusa import cvusa
 from geoloc.launch import run
@@ -89,8 +90,20 @@ def test_the_arguments_split_into_the_commands_keys_and_evaluate_overrides():
     assert own == ["ckpt=a.pt", "heading_steps=6"] and dataset == ["dataset=cvact", "dataset.root=/d"]
     assert cross == [["dataset=vigor", "dataset.setting=cross_area"], ["dataset=u1652"]]
     assert split_args(["ckpt=a.pt"])[2] == [["dataset=vigor"]] and split_args(["cross=none"])[2] == []
-    with pytest.raises(ConfigError, match="'fovs' is not key=value"):
-        split_args(["fovs"])
+
+
+def test_the_commands_own_keys_take_hydras_grammar_and_a_bad_one_is_refused_naming_it(tmp_path):
+    """geoloc/conf/robustness.yaml over RobustnessConfig, composed as the other verbs compose theirs: a list, Hydra's
+    quoting (a comma kept in a path), `+key`, a typo and an argument without `=`, each before anything runs."""
+    cfg = compose_checked("robustness", RobustnessConfig, ["ckpt=a.pt", "fovs=[360,90]", "distractor_split='val'",
+                                                           "out='runs/a,b'"], "robustness")
+    assert cfg == RobustnessConfig(ckpt="a.pt", fovs=[360.0, 90.0], distractor_split="val", out="runs/a,b")
+    assert compose_checked("robustness", RobustnessConfig, ["ckpt=a.pt"], "robustness") == RobustnessConfig(ckpt="a.pt")
+    absent = f"ckpt={tmp_path / 'absent.pt'}"
+    for arg, says in (("fovz=[90]", "Could not override 'fovz'.$"), ("+fovz=[90]", "Key 'fovz' not in 'Robustness"),
+                      ("fovs", "Error parsing override 'fovs' missing EQUAL"), ("out=a,b", "Ambiguous value")):
+        with pytest.raises(ConfigError, match=f"^bad 'robustness' config: {says}"):
+            robustness([absent, "cross=dataset=cvusa dataset.root=/d", "dataset.split=val", arg])
 
 
 def test_a_taken_out_folder_or_a_missing_checkpoint_is_refused_before_anything_runs(tmp_path):

@@ -26,6 +26,8 @@ from fastapi.testclient import TestClient
 from geoloc import cli
 from geoloc.apps.query import QueryLimits, check_settings, check_size
 from geoloc.apps.serve import create_app, upload
+from geoloc.apps.serve.command import ServeConfig
+from geoloc.launch.hydra_hooks import compose_checked
 from test_localize import gallery  # noqa: F401  (a fixture: a 1-epoch TINY checkpoint and its saved gallery)
 
 from conftest import REPO
@@ -346,14 +348,21 @@ def test_geoloc_serve_loads_the_localizer_once_and_runs_uvicorn(monkeypatch):
     (["serve", "--help"], 0, "usage: geoloc serve ckpt=PATH gallery=DIR"),
     (["locate"], 2, "geoloc: unknown subcommand 'locate'"),
     (["serve", "gallery=g"], 2, "missing mandatory value: ckpt"),
-    (["serve", "ckpt=a", "gallery=g", "prt=80"], 2, "Key 'prt' not in 'ServeConfig'"),
+    (["serve", "ckpt=a", "gallery=g", "prt=80"], 2, "geoloc serve: bad 'serve' config: Could not override 'prt'.\n"),
+    (["serve", "ckpt=a", "gallery=g", "+prt=80"], 2, "Key 'prt' not in 'ServeConfig'"),
     (["serve", "ckpt=a", "gallery=g", "port=http"], 2, "'http' of type 'str' could not be converted to Integer"),
-    (["serve", "ckpt", "gallery=g"], 2, "'ckpt' is not key=value"),
+    (["serve", "ckpt", "gallery=g"], 2, "bad 'serve' config: Error parsing override 'ckpt' missing EQUAL"),
+    (["serve", "ckpt=a", "gallery=g", "port=80,81"], 2, "Ambiguous value for argument 'port=80,81'"),
     (["serve", "ckpt=no/such.pt", "gallery=g"], 2, "geoloc serve: checkpoint not found: no/such.pt"),
 ])
 def test_the_console_script_explains_its_usage_and_bad_arguments(capsys, argv, code, message):
     assert cli.main(argv) == code
     assert message in capsys.readouterr()[0 if code == 0 else 1]
+
+
+def test_geoloc_conf_serve_yaml_is_serve_config_with_its_defaults():
+    composed = compose_checked("serve", ServeConfig, ["ckpt=a", "gallery='g,1'"], "serve")  # Hydra's quoting
+    assert composed == ServeConfig(ckpt="a", gallery="g,1")
 
 
 def test_pyproject_declares_the_script_and_ci_installs_the_serve_extra():

@@ -8,7 +8,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from omegaconf import OmegaConf
 from tqdm import tqdm
 
 from geoloc.apps.bench import report
@@ -18,7 +17,8 @@ from geoloc.apps.bench.encode_once import score_protocols
 from geoloc.apps.bench.bench_sets import ROOT_KEYS, TEST_SETS, data_overrides, test_set
 from geoloc.apps.table_files import (check_fovs, evaluate_config, refuse_out_that_is_no_folder, refuse_taken,
                                      write_whole)
-from geoloc.config import ConfigError, checked
+from geoloc.config import ConfigError
+from geoloc.launch.hydra_hooks import compose_checked
 
 USAGE = f"""usage: geoloc bench ckpts=[PATH,...] [sets=[{','.join(TEST_SETS)}]] [fovs=[360,180,90,70]]
                     [headings=[known,unknown]] [heading_steps=12] [cvusa=DIR] [cvact=DIR] [vigor=DIR] [u1652=DIR]
@@ -44,7 +44,7 @@ FILES = ("bench.md", "bench.csv", "bench.json")
 
 @dataclass
 class BenchConfig:
-    """`geoloc bench`'s own keys (USAGE); dataset.* overrides are parsed apart (split_args)."""
+    """`geoloc bench`'s own keys (schema/bench: geoloc/conf/bench.yaml); dataset.* overrides: split_args."""
 
     ckpts: list[str] = field(default_factory=list)
     sets: list[str] = field(default_factory=lambda: list(TEST_SETS))
@@ -70,13 +70,10 @@ class BenchConfig:
 
 
 def split_args(args: list[str]) -> tuple[list[str], list[str]]:
-    """(the command's own key=value args, the dataset.* overrides every test set gets)."""
+    """(bench.yaml's overrides, the dataset.* overrides every test set gets: evaluate.py's, passed as given)."""
     own, dataset = [], []
     for arg in args:
-        key, sep, _ = arg.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"'{arg}' is not key=value: geoloc bench takes its settings as key=value")
-        name = key.lstrip("+~")
+        name = arg.partition("=")[0].lstrip("+~")
         if name == "dataset":
             raise ConfigError("sets= names the test sets; dataset= is not a geoloc bench key")
         (dataset if name.startswith("dataset.") else own).append(arg)
@@ -86,7 +83,7 @@ def split_args(args: list[str]) -> tuple[list[str], list[str]]:
 def bench(args: list[str]) -> dict:
     """Compute and write the table; returns its JSON record."""
     own, dataset = split_args(args)
-    cfg = checked(OmegaConf.from_dotlist(own), BenchConfig, "bench")
+    cfg = compose_checked("bench", BenchConfig, own, "bench")
     out = Path(cfg.out)
     refuse_out_that_is_no_folder(out, list(FILES), "geoloc bench")
     refuse_taken([out / name for name in FILES], cfg.overwrite)

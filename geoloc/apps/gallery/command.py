@@ -21,19 +21,19 @@ USAGE = """usage: geoloc gallery merge SHARD_DIR [SHARD_DIR ...] out=DIR [overwr
 
 
 @dataclass
-class MergeKeys:
+class MergeKeys:  # geoloc/conf/gallery_merge.yaml extends this node (schema/gallery_merge)
     out: str = MISSING
     overwrite: bool = False
 
 
 def main(args: list[str]) -> int:
-    from geoloc.config import parse_keys
     from geoloc.gallery import merge_shards
+    from geoloc.launch.hydra_hooks import compose_checked
 
     if not args or args[0] != "merge":
         raise ConfigError(f"unknown gallery action {args[0] if args else '(none)'!r}: geoloc gallery merge ...")
     folders = [a for a in args[1:] if "=" not in a]
-    keys = parse_keys([a for a in args[1:] if "=" in a], MergeKeys, "gallery merge")
+    keys = compose_checked("gallery_merge", MergeKeys, [a for a in args[1:] if "=" in a], "gallery merge")
     info, calibration = merge_shards(folders, keys.out, overwrite=keys.overwrite)
     print(f"{keys.out}: {info['num_references']:,} references ({info['kind']}) from {len(folders)} shards")
     if not calibration["calibrated"]:

@@ -8,11 +8,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from omegaconf import MISSING, OmegaConf
+from omegaconf import MISSING
 
 from geoloc.apps.table_files import (check_fovs, evaluate_config, refuse_out_that_is_no_folder, refuse_taken,
                                      write_whole)
-from geoloc.config import ConfigError, checked
+from geoloc.config import ConfigError
+from geoloc.launch.hydra_hooks import compose_checked
 from geoloc.apps.robustness.conditions import Plan, as_json, evaluate_conditions, markdown
 
 USAGE = """usage: geoloc robustness ckpt=PATH [out=DIR] [overwrite=false] [fovs=[360,180,90,70]] [heading_steps=12]
@@ -42,7 +43,7 @@ TABLE_MD, TABLE_JSON = "robustness.md", "robustness.json"
 
 @dataclass
 class RobustnessConfig:
-    """`geoloc robustness`'s own keys (USAGE); `dataset*` and `cross` are evaluate.py overrides, parsed apart."""
+    """`geoloc robustness`'s own keys (schema/robustness: geoloc/conf/robustness.yaml); dataset*, cross: split_args."""
 
     ckpt: str = MISSING
     out: str | None = None
@@ -63,12 +64,10 @@ class RobustnessConfig:
 
 
 def split_args(args: list[str]) -> tuple[list[str], list[str], list[list[str]]]:
-    """(the command's own key=value args, the dataset overrides, the cross rows' overrides)."""
+    """(robustness.yaml's overrides, the dataset ones, the cross rows'): dataset*, cross= go to evaluate.py as given."""
     own, dataset, cross = [], [], [["dataset=vigor"]]
     for arg in args:
-        key, sep, value = arg.partition("=")
-        if not sep:
-            raise ConfigError(f"'{arg}' is not key=value: geoloc robustness takes its settings as key=value")
+        key, _, value = arg.partition("=")
         if key.lstrip("+~").split(".")[0] == "dataset":
             dataset.append(arg)
         elif key == "cross":
@@ -86,7 +85,7 @@ def default_out(ckpt: str) -> Path:
 def robustness(args: list[str]) -> dict:
     """Compute and write the table; returns its JSON."""
     own, dataset, cross = split_args(args)
-    cfg = checked(OmegaConf.from_dotlist(own), RobustnessConfig, "robustness")
+    cfg = compose_checked("robustness", RobustnessConfig, own, "robustness")
     out = Path(cfg.out) if cfg.out else default_out(cfg.ckpt)
     refuse_out_that_is_no_folder(out, [TABLE_MD, TABLE_JSON], "robustness")
     refuse_taken([out / TABLE_MD, out / TABLE_JSON], cfg.overwrite)

@@ -38,7 +38,7 @@ open http://HOST:PORT/ in a browser) and GET /tiles/{{row}}; see docs/apps.md, "
 
 @dataclass
 class ServeConfig(QueryLimits):
-    """`geoloc serve`'s keys; the limits on one image are QueryLimits' (the same keys as localize.py's)."""
+    """`geoloc serve`'s keys (schema/serve: geoloc/conf/serve.yaml); the limits on one image are QueryLimits'."""
 
     ckpt: str = MISSING
     gallery: str = MISSING
@@ -65,9 +65,9 @@ class ServeConfig(QueryLimits):
 def main(args: list[str]) -> int:
     import uvicorn
 
-    from geoloc.config import parse_keys
+    from geoloc.launch.hydra_hooks import compose_checked
 
-    cfg = parse_keys(args, ServeConfig, "serve")
+    cfg = compose_checked("serve", ServeConfig, args, "serve")  # geoloc/conf/serve.yaml
     from geoloc.apps.localize import Localizer  # torch and the model code: only once the arguments are good
 
     try:  # once, before the first request: every request shares this model and gallery

@@ -219,10 +219,12 @@ def run_approximate(args, kind, query, ref):
     index = GalleryIndex(ref.shape[1], backend="faiss", kind=kind, nlist=args.nlist, m=args.m, nbits=args.nbits,
                          coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m,
                          ef_construction=args.ef_construction)
-    _, build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)))
+    build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)) and None)[1]
     disk = {}
     if kind == "ivfpq_disk":  # searched as a saved gallery is: the codes in memory, the float16 rows mapped
-        index, disk = reopened(index, args)
+        folder = saved(index, args)
+        del index
+        index, disk = reopened(folder)
     knob = SWEPT[kind]
     sweep = []
     for value in getattr(args, knob):
@@ -235,26 +237,43 @@ def run_approximate(args, kind, query, ref):
     peak = _status("VmHWM")  # before serialize_index makes its copy
     if disk:
         before = disk.pop("rss_before_load")
-        disk["rss_after_search_mib"] = {k: _status(k) - before[k] for k in before}
+        disk["rss_after_search_mib"] = {**{k: _status(k) - before[k] for k in before}, **mapped_rss(disk["folder"])}
     return dict(build_s=build_s, sweep=sweep, peak_before_size_mib=peak,
                 index_mib=len(faiss.serialize_index(index._index)) / 2**20, **disk)
 
 
-def reopened(index, args):
-    """ivfpq_disk: save the built index, drop it, load it back (its float16 rows memory-mapped from disk); the
-    resident memory the loaded index adds, and the bytes of its files."""
+def saved(index, args):
     import tempfile
-
-    from geoloc.eval import GalleryIndex
 
     folder = tempfile.mkdtemp(dir=args.huge_dir)
     index.save(os.path.join(folder, "gallery.pt"))
-    del index
+    return folder
+
+
+def reopened(folder):
+    """ivfpq_disk: the index saved in `folder` loaded back (its codes and float16 rows memory-mapped); the resident
+    memory the load adds, and the bytes of the rows' files."""
+    from geoloc.eval import GalleryIndex
+
     rows = sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder) if f.endswith(".f16"))
     before = {k: _status(k) for k in ("RssAnon", "RssFile")}  # memory of its own; pages of mapped files
     loaded = GalleryIndex.load(os.path.join(folder, "gallery.pt"))
     return loaded, {"rss_before_load": before, "rss_after_load_mib": {k: _status(k) - before[k] for k in before},
-                    "rows_file_mib": rows / 2**20}
+                    "rows_file_mib": rows / 2**20, "folder": folder}
+
+
+def mapped_rss(folder):
+    """MiB resident of the files mapped from `folder`, by suffix (/proc/self/smaps): the codes (.faiss) and the
+    float16 rows (.f16)."""
+    out, suffix = {".faiss": 0.0, ".f16": 0.0}, None
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            head = line.split()
+            if len(head) >= 6 and "-" in head[0]:  # a mapping's first line ends with its path
+                suffix = next((s for s in out if head[-1].startswith(folder) and head[-1].endswith(s)), None)
+            elif suffix and line.startswith("Rss:"):
+                out[suffix] += int(head[1]) / 1024
+    return out
 
 
 def recall_from_topk(idx):
@@ -279,7 +298,7 @@ def describe(kind, args):
     return {"ivfpq": f"nlist {args.nlist} m {args.m}x{args.nbits}", "pq_refine": f"m {args.m}x4",
             "ivfpq_refine": f"nlist {args.nlist} m {args.m}x4 k_factor {IVF_K_FACTOR}",
             "pq_sq8": f"m {args.coarse_m}x4 + SQ8", "hnsw": f"M {args.hnsw_m} efC {args.ef_construction}",
-            "ivfpq_disk": f"nlist {args.nlist} m {args.m}x{args.nbits} + f16 rows k_factor {IVF_K_FACTOR}"}[kind]
+            "ivfpq_disk": f"nlist {args.nlist} m {args.m}x4 + f16 rows k_factor {IVF_K_FACTOR}"}[kind]
 
 
 def main(args, argv):
@@ -322,9 +341,9 @@ def main(args, argv):
             if "rows_file_mib" in r:
                 load, search = r["rss_after_load_mib"], r["rss_after_search_mib"]
                 print(f"  {'':4s}(loaded from disk, resident: +{load['RssAnon']:.0f} MiB own + {load['RssFile']:.0f} "
-                      f"MiB of mapped pages after the load, +{search['RssAnon']:.0f} + {search['RssFile']:.0f} MiB "
-                      f"after the searches; float16 rows on disk {r['rows_file_mib']:.0f} MiB, not counted in the "
-                      f"index MiB)")
+                      f"MiB of mapped pages after the load; after all the searches +{search['RssAnon']:.0f} MiB own, "
+                      f"{search['.faiss']:.0f} MiB of the codes' pages and {search['.f16']:.0f} MiB of the float16 "
+                      f"rows' pages, of {r['rows_file_mib']:.0f} MiB on disk)")
     if args.huge_n:
         r = spawn("huge", argv)
         results.append(r)

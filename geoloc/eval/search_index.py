@@ -15,10 +15,11 @@ Two backends:
     sub-quantisers (``coarse_m / 2`` bytes), the best ``k_factor * k`` re-ranked from 8-bit scalar-quantised copies
     of the vectors (``IndexRefine`` over ``IndexScalarQuantizer`` SQ8, FAISS's ``"PQ32x4fs,Refine(SQ8)"``): dim + 16
     bytes a reference, a quarter of the float32 vectors that ``pq_refine`` keeps (0.49 GiB per million at D 512).
-  - ``ivfpq_disk``: ``ivfpq``'s codes in memory (``m`` bytes a reference at ``nbits=8``: 64 by default), their
-    best ``k_factor * k`` candidates re-ranked by exact inner products with the full descriptors, kept as float16
-    rows in a file beside the index and read memory-mapped (half_vectors.py): the memory a search needs is the
-    codes and the pages of the rows it re-ranks, not the 2 x dim bytes a reference that the file holds.
+  - ``ivfpq_disk``: ``ivfpq_refine``'s inverted lists of 4-bit fast-scan codes in memory (``m / 2`` bytes a
+    reference and its 8-byte row number: 40 bytes at m=64), their best ``k_factor * k`` candidates re-ranked by
+    exact inner products with the full descriptors, kept as float16 rows in files beside the index and read
+    memory-mapped (half_vectors.py): a search needs the codes and the pages of the rows it re-ranks, not the
+    2 x dim bytes a reference that the files hold.
   - ``hnsw``: a navigable small-world graph over the full vectors (``IndexHNSWFlat``; Malkov & Yashunin, TPAMI
     2018): ``hnsw_m`` links per node, ``ef_construction`` / ``ef_search`` candidates while building / searching.
   ``pq_refine``, ``ivfpq_refine`` and ``hnsw`` return exact inner products of the rows they return; ``pq_sq8``
@@ -59,7 +60,6 @@ TRAIN_POINTS = 200_000  # the most vectors the quantisers train on (a seeded sam
 KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "ivfpq_disk", "hnsw")
 PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "ivfpq_disk")  # their sub-quantisers must divide dim
 IVF_KINDS = ("ivfpq", "ivfpq_refine", "ivfpq_disk")  # inverted lists: nlist trained, nprobe searched
-BYTE_CODE_KINDS = ("ivfpq", "ivfpq_disk")  # nbits-bit PQ codes (the fast-scan kinds' are 4-bit)
 REFINE_KINDS = ("pq_refine", "ivfpq_refine", "pq_sq8")  # IndexRefine: k_factor * k candidates re-ranked
 
 
@@ -86,9 +86,12 @@ def _pq_refine(faiss, dim, p):
     return faiss.IndexRefineFlat(faiss.IndexPQFastScan(dim, p["m"], 4, faiss.METRIC_INNER_PRODUCT))
 
 
+def _ivf_fast_scan(faiss, dim, p):
+    return faiss.IndexIVFPQFastScan(faiss.IndexFlatIP(dim), dim, p["nlist"], p["m"], 4, faiss.METRIC_INNER_PRODUCT)
+
+
 def _ivfpq_refine(faiss, dim, p):
-    ivf = faiss.IndexIVFPQFastScan(faiss.IndexFlatIP(dim), dim, p["nlist"], p["m"], 4, faiss.METRIC_INNER_PRODUCT)
-    return faiss.IndexRefineFlat(ivf)
+    return faiss.IndexRefineFlat(_ivf_fast_scan(faiss, dim, p))
 
 
 def _pq_sq8(faiss, dim, p):
@@ -102,7 +105,7 @@ def _hnsw(faiss, dim, p):
 
 
 _BUILDERS = {"flat": _flat, "ivfpq": _ivfpq, "pq_refine": _pq_refine, "ivfpq_refine": _ivfpq_refine,
-             "pq_sq8": _pq_sq8, "ivfpq_disk": _ivfpq, "hnsw": _hnsw}  # ivfpq_disk: ivfpq + its float16 rows
+             "pq_sq8": _pq_sq8, "ivfpq_disk": _ivf_fast_scan, "hnsw": _hnsw}  # ivfpq_disk: + float16 rows
 
 
 def sub_quantisers(kind: str, params: dict) -> tuple[str, int]:
@@ -130,7 +133,7 @@ def training_points(kind: str, params: dict) -> tuple[int, str]:
     if kind in IVF_KINDS:
         parts.append((params["nlist"], f"{params['nlist']} inverted lists (nlist)"))
     if kind in PQ_KINDS:
-        bits = params["nbits"] if kind in BYTE_CODE_KINDS else 4  # the fast-scan kinds' codes are 4-bit
+        bits = params["nbits"] if kind == "ivfpq" else 4  # the fast-scan kinds' codes are 4-bit
         parts.append((2 ** bits, f"{2 ** bits} centroids per sub-quantiser ({bits}-bit codes)"))
     if not parts:
         return 0, "nothing"
@@ -160,7 +163,7 @@ class IndexParams:
 
     nlist: int = 1024  # IVF kinds: inverted lists (capped at N / 39, FAISS's minimum training points per list)
     m: int = 64  # PQ kinds: sub-quantisers; must divide the descriptor dim
-    nbits: int = 8  # ivfpq, ivfpq_disk: bits per sub-code (the refine kinds use 4-bit fast-scan codes)
+    nbits: int = 8  # ivfpq: bits per sub-code (the refine kinds and ivfpq_disk use 4-bit fast-scan codes)
     nprobe: int = 16  # IVF kinds: lists visited per query
     k_factor: int = 16  # refine kinds, ivfpq_disk: k_factor * k PQ candidates re-ranked (pq_sq8: from their SQ8
     # codes, ivfpq_disk: from their float16 rows on disk)
@@ -204,8 +207,8 @@ class GalleryIndex:
         if kind in PQ_KINDS and dim % sub_quantisers(kind, vars(params))[1]:
             knob, m = sub_quantisers(kind, vars(params))
             raise ValueError(f"{kind} needs {knob} (sub-quantisers) to divide dim, got dim={dim}, {knob}={m}")
-        if kind in BYTE_CODE_KINDS and params.nbits > 16:
-            raise ValueError(f"{kind} needs nbits (bits per sub-code) in 1..16, got {params.nbits}")
+        if kind == "ivfpq" and params.nbits > 16:
+            raise ValueError(f"ivfpq needs nbits (bits per sub-code) in 1..16, got {params.nbits}")
         self.dim, self.backend, self.kind = int(dim), backend, kind
         self.params = {f.name: int(getattr(params, f.name)) for f in fields(IndexParams)}
         self.chunk_size = int(chunk_size)

@@ -9,21 +9,13 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.eval import GalleryIndex
 from geoloc.gallery.index_settings import GalleryConfig, build_index
+from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 faiss = pytest.importorskip("faiss")
 
 DIM = 32
 SMALL = dict(nlist=16, m=8, coarse_m=8, nprobe=8, k_factor=8, hnsw_m=16, ef_construction=40, ef_search=64)
 NEW_KINDS = ["pq_refine", "ivfpq_refine", "hnsw"]
-
-
-@pytest.fixture(autouse=True)
-def one_faiss_thread():
-    # One thread: a parallel HNSW build is not reproducible, and OpenMP on a busy shared CPU is slow.
-    before = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)
-    yield
-    faiss.omp_set_num_threads(before)
 
 
 def unit(x):

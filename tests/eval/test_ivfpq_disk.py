@@ -8,18 +8,11 @@ import torch
 
 from geoloc.eval import GalleryIndex
 from geoloc.eval.half_vectors import HalfVectors
+from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 faiss = pytest.importorskip("faiss")
 
 DIM = 32
-
-
-@pytest.fixture(autouse=True)
-def one_faiss_thread():
-    before = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)
-    yield
-    faiss.omp_set_num_threads(before)
 
 
 def unit(x):
@@ -59,7 +52,7 @@ def test_the_default_shortlist_keeps_the_exact_top1_where_the_codes_alone_do_not
     query, reference = data
     knobs = dict(nlist=16, m=4, nbits=4, nprobe=4)  # coarse codes: their own ranking loses the top-1 often
     exact = brute_force(query, reference, 1)[1][:, 0]
-    codes = GalleryIndex(DIM, backend="faiss", kind="ivfpq", **knobs).add(reference).search(query, 10)[1]
+    codes = GalleryIndex(DIM, backend="faiss", kind="ivfpq", **knobs).add(reference).search(query, 10)[1]  # 4-bit
     disk_scores, disk = GalleryIndex(DIM, backend="faiss", kind="ivfpq_disk", **knobs).add(reference).search(query, 10)
     kept_codes, kept_disk = np.mean(codes[:, 0].numpy() == exact), np.mean(disk[:, 0].numpy() == exact)
     assert kept_disk >= 0.95 and kept_disk > kept_codes + 0.1, (kept_codes, kept_disk)
@@ -75,9 +68,10 @@ def test_saved_it_holds_the_codes_beside_two_bytes_a_dimension_and_maps_them_bac
     index.save(tmp_path / "gallery.pt")
     assert (tmp_path / "gallery.0.f16").stat().st_size == len(reference) * DIM * 2
     per_reference = (tmp_path / "gallery.faiss").stat().st_size / len(reference)
-    codebooks = (256 * DIM + 16 * DIM) * 4 / len(reference)  # the PQ centroids and the 16 lists' centroids
-    # m one-byte codes and an 8-byte row id a reference, plus the codebooks spread over the rows
-    assert 8 + 8 + codebooks <= per_reference < 8 + 8 + codebooks + 1, per_reference
+    codebooks = (16 * DIM + 16 * DIM) * 4 / len(reference)  # the 4-bit PQ centroids and the 16 lists' centroids
+    # m 4-bit codes and an 8-byte row number a reference, plus the codebooks spread over the rows (and each
+    # list's codes padded to a block of 32)
+    assert 4 + 8 + codebooks <= per_reference < 4 + 8 + codebooks + 1, per_reference
     loaded = GalleryIndex.load(tmp_path / "gallery.pt")
     assert all(isinstance(block, np.memmap) for block in loaded._half._blocks)  # read as searches touch it
     torch.testing.assert_close(loaded.search(query, 5), index.search(query, 5), rtol=0, atol=0)

@@ -17,10 +17,11 @@ from geoloc.gallery import shards as gallery_shards
 from geoloc.gallery.shards import merge_shards
 
 from helpers.gallery_runs import META, gallery_evaluate, pairs_split
+from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 N, DIM = 120, 32
 KNOBS = dict(coarse_m=8, k_factor=8)
-KIND_KNOBS = {"pq_sq8": KNOBS, "ivfpq_disk": dict(m=8, nbits=4, k_factor=8)}  # trained kinds, at 40-row shards
+KIND_KNOBS = {"pq_sq8": KNOBS, "ivfpq_disk": dict(m=8, k_factor=8)}  # trained kinds, at 40-row shards
 
 
 def descriptors(seed=0):
@@ -34,15 +35,6 @@ def job(monkeypatch, tmp_path, meta=META, seed=0, split=None, **cfg):
     query, reference = descriptors(seed)
     return gallery_evaluate(monkeypatch, split or pairs_split(N, tmp_path / "data"), query, reference, meta=meta,
                             **cfg)
-
-
-@pytest.fixture(autouse=True)
-def one_faiss_thread():
-    faiss = pytest.importorskip("faiss")
-    before = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)  # OpenMP on a busy shared CPU is slow
-    yield
-    faiss.omp_set_num_threads(before)
 
 
 def shards(monkeypatch, tmp_path, kind, count=3, codebook=None, prefix="shard", **extra):

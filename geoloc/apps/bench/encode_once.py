@@ -40,6 +40,7 @@ def score_protocols(task, stored, configs: list) -> tuple[list[dict], dict]:
     references = outputs(ViewImages(split.references, reference_view, first.data, refine=refine), "reference")
     results = []
     for run in runs:
+        task.validate_on(split, heading_search=run.data.random_heading)
         queries = ViewImages(split.queries, split.query_view, run.data, heading_search=run.data.random_heading,
                              refine=refine)
         metrics = task.validation_epoch_end({"query": outputs(queries, "query"), "reference": references})

@@ -72,7 +72,7 @@ def build_run(cfg: DictConfig | CrossViewTraining, run_dir: str | Path) -> Run:
                       views=run.components.views, refine=refine)
     val_set = build_eval(run.data, run.reader, run.data.val_split, refine=refine)
     check_monitor(run.monitor, validation_plan(run.data, run.refine, val_set.split), f"on {val_set.split.name}")
-    task.validate_on(val_set.split)
+    task.validate_on(val_set.split, heading_search=run.data.random_heading)
     trainer = Trainer(run.trainer, run_dir, run.yaml)
     if source and dist.is_main():  # written once the data is there
         ckpt_io.write_source(run_dir, source)
@@ -124,7 +124,7 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
         check_target(run.gallery.save, run.gallery.overwrite)
     if eval_data is None:
         eval_data = build_eval(run.data, run.reader, run.data.split, refine=run.components.refine)
-    task.validate_on(eval_data.split)
+    task.validate_on(eval_data.split, heading_search=run.data.random_heading)
     trainer = evaluation_trainer(run)
     task.to(trainer.device)
     if run.gallery.save or run.gallery.load:  # a saved GalleryIndex (torch / FAISS flat / IVF-PQ)

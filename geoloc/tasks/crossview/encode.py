@@ -9,44 +9,26 @@ import torch
 from geoloc.engine import distributed as dist
 
 
-def encode(task, engine, loader, keys=("query", "reference"), refine: bool = False) -> dict:
-    """{key: N x dim float32 CPU descriptors} of the whole dataset of `loader` (an unshuffled engine.loader) in
-    dataset order.
-
-    keys name both the batch entry and the branch of `task.model` that encodes it ("query", "reference").
-    refine: also {"refine_<key>": `task.refiner`'s maps of batch["refine_<key>"]}, the same items read at the
-    refiner's input (datasets.eval_sets(refine=)), from the same decode, and with the queries their
-    "refine_heading" (the heading each was read at, the truth of the refiner's).
-    """
-    def describe(batch):
-        out = {k: getattr(task.model, k)(batch[k]) for k in keys}
-        if refine:
-            out.update({f"refine_{k}": refine_encoder(task, k)(batch[f"refine_{k}"]) for k in keys})
-            out.update(query_heading(batch, keys))
-        return out
-
-    return _encoded(task, engine, loader, describe)
+def encode(task, engine, loader, encoders: dict | None = None, refine: bool = False, entry: str | None = None) -> dict:
+    """{side: N x dim float32 CPU descriptors} of the whole dataset of `loader` (an unshuffled engine.loader) in
+    dataset order, as `described` gives them: by default the pairs' "query" and "reference" through their branches
+    of `task.model`; a ViewImages loader with entry="image" and {side: its encoder}. refine: also the refiner's maps."""
+    encoders = encoders or {side: getattr(task.model, side) for side in ("query", "reference")}
+    return _encoded(task, engine, loader, lambda batch: described(task, batch, encoders, refine, entry))
 
 
-def encode_images(task, engine, loader, encoder, side: str, refine: bool = False) -> dict:
-    """{side: N x dim float32 CPU descriptors} of a ViewImages loader's images (batch["image"]) through `encoder` (a
-    branch of `task.model`: `task.model.encoders(...)` picks it), in dataset order; refine: also {"refine_<side>":
-    the refiner's maps of the same images at its input (batch["refine_image"]) and the queries' "refine_heading"},
-    from the same decode."""
-    def describe(batch):
-        out = {side: encoder(batch["image"])}
-        if refine:
-            out[f"refine_{side}"] = refine_encoder(task, side)(batch["refine_image"])
-            out.update(query_heading(batch, (side,)))
-        return out
-
-    return _encoded(task, engine, loader, describe)
-
-
-def query_heading(batch, sides) -> dict:
-    """{"refine_heading": the heading each query of the batch was read at for the refiner} where `sides` holds the
-    queries, else {}."""
-    return {"refine_heading": batch["refine_heading"]} if "query" in sides else {}
+def described(task, batch: dict, encoders: dict, refine: bool = False, entry: str | None = None,
+              keep: tuple[str, ...] = ()) -> dict:
+    """{side: encoders[side](the side's images)} of one batch, for each side of `encoders` ("query", "reference"):
+    a batch of pairs holds each side's images under the side's name, a ViewImages batch (one side) under `entry`
+    ("image"). refine: also {"refine_<side>": `task.refiner`'s maps of the same items at its input (the entry
+    "refine_<side>" / "refine_<entry>")} and the queries' "refine_heading". keep: the entries of a batch of queries
+    passed on as they are (a heading search's true "heading"). Validation and the gallery both encode through it."""
+    out = {side: encoder(batch[entry or side]) for side, encoder in encoders.items()}
+    if refine:
+        out.update({f"refine_{s}": refine_encoder(task, s)(batch[f"refine_{entry or s}"]) for s in encoders})
+        keep = (*keep, "refine_heading")
+    return {**out, **{k: batch[k] for k in (keep if "query" in encoders else ())}}
 
 
 def refine_encoder(task, side: str):

@@ -46,7 +46,7 @@ from geoloc.gallery.folder import open_codebook, open_gallery, save_gallery
 from geoloc.gallery.index_settings import (GalleryConfig, build_index, empty_index, index_knobs, scored_confidence,
                                            shard_rows, top1_rows)
 from geoloc.tasks.crossview.datasets import EvalData, holdout_rule
-from geoloc.tasks.crossview.encode import encode, encode_images
+from geoloc.tasks.crossview.encode import encode
 from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_refiner
 
 __all__ = ["GalleryConfig", "build_index", "build_part", "encode_split", "evaluate"]  # GalleryConfig, build_index:
@@ -66,15 +66,15 @@ def encode_split(task, engine, data: EvalData, batch_size: int, sides=("query", 
         if any(int(labels[i]) != i for i in rows):  # pair i holds reference labels[i]
             raise ValueError("encoding some references of a split through its pairs needs pair i to hold "
                              "reference i (a one-to-one split)")
-    if data.pairs is not None:
-        return encode(task, engine, engine.loader(subset(data.pairs), batch_size, train=False), keys=sides,
-                      refine=refine)
     encoders = dict(zip(("query", "reference"), task.model.encoders(data.split.aerial_queries)))
+    if data.pairs is not None:
+        return encode(task, engine, engine.loader(subset(data.pairs), batch_size, train=False),
+                      {side: encoders[side] for side in sides}, refine)
     images = {"query": data.queries, "reference": subset(data.references)}
     out = {}
     for side in sides:
-        out.update(encode_images(task, engine, engine.loader(images[side], batch_size, train=False), encoders[side],
-                                 side, refine))
+        out.update(encode(task, engine, engine.loader(images[side], batch_size, train=False), {side: encoders[side]},
+                          refine, "image"))
     return out
 
 

@@ -59,6 +59,13 @@ def query_inputs(street: np.ndarray, cfg, view: str, fov_deg: float, headings) -
     return normalise(query_images(street, cfg, view, fov_deg, headings))
 
 
+def candidate_descriptors(encoder, candidates: torch.Tensor) -> torch.Tensor:
+    """B×K×3×H×W candidate inputs (K headings per query) -> B×K×D descriptors, encoded B images at a time as
+    without the search: K·B at once would hold K times the activations."""
+    flat = candidates.flatten(0, 1)
+    return torch.cat([encoder(part) for part in flat.split(candidates.shape[0])]).unflatten(0, candidates.shape[:2])
+
+
 def heading_plan(ks: Iterable[int] = (1, 5, 10)) -> list:
     """The key sets `heading_metrics` reports (its collapsed result is `geoloc.eval.keys.collapsed` of them)."""
     return [recall_keys(check_ks(ks)), HEADING_KEYS]

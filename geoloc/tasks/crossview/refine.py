@@ -31,6 +31,7 @@ from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import (E2E_KEYS, FINE_HEADING_KEYS, FINE_KEYS, WHOLE_TILE_KEYS, e2e_summary,
                                     fine_summary, heading_summary, whole_tile_summary)
+from geoloc.eval.scoring import top_k
 from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, to_tensor
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
 
@@ -282,6 +283,18 @@ def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidate
         e2e_position, _, _ = refined(refiner, refine, query_maps, reference_maps, rows, tiles, candidates, split)
         out.update(e2e_summary(e2e_errors_m(e2e_position.numpy(), tiles, split)))
     return out
+
+
+def refiner_metrics(task, split: RetrievalSplit | None, maps: dict, top1: Callable[[], np.ndarray] | None = None,
+                    answers: TileAnswers | None = None) -> dict[str, float]:
+    """fine_metrics of `task`'s refiner from encode.described's entries of `split`'s queries and tiles
+    ("refine_query", "refine_reference", "refine_heading"; top1 by default the exact ranking of its "query" and
+    "reference" descriptors), as validation and the gallery path report it; {} without a refiner or a split."""
+    if task.refiner is None or split is None:
+        return {}
+    top1 = top1 or (lambda: top_k(maps["query"], maps["reference"], 1)[1][:, 0].cpu().numpy())
+    return fine_metrics(task.refiner, split, task.refine, task.refine_candidates(), maps["refine_query"],
+                        maps["refine_reference"], maps["refine_heading"], top1, answers)
 
 
 def labels_of(split: RetrievalSplit) -> dict[str, str]:

@@ -20,7 +20,7 @@ from geoloc.eval.calibration import Calibrator
 from geoloc.gallery.confidence import (NO_HOLDOUT, WITHIN_5M, confidence_report, fit_within,
                                                refine_features, refiner_calibrator)
 from geoloc.tasks.crossview.datasets import holdout_rule
-from geoloc.tasks.crossview.refine import RADIUS_M, RefineConfig, TileAnswers, fine_metrics, whole_tile_answers
+from geoloc.tasks.crossview.refine import RADIUS_M, RefineConfig, TileAnswers, refiner_metrics, whole_tile_answers
 
 NO_SCALE = "the split's tiles have no metres per pixel, so the refiner's error has no metres to calibrate"
 
@@ -60,7 +60,7 @@ def refiner_condition(refiner, refine: RefineConfig) -> dict:
 
 
 def scored_refiner(record: dict | None, task, split, maps: dict, top1, run_dir: Path | None) -> dict:
-    """The refiner's metrics of the split's queries, as the plain evaluation reports them (refine.fine_metrics,
+    """The refiner's metrics of the split's queries, as the plain evaluation reports them (refine.refiner_metrics,
     from the refiner's `maps` and the queries' "refine_heading" of gallery.encode_split(refine=True); `top1()`: each
     query's top-1 tile in the gallery) and, under a gallery calibrated for this refiner (refiner_calibrator),
     `ece_within_5m` over every tile that holds a query and run_dir/confidence_within_5m.png; {} without a
@@ -68,8 +68,7 @@ def scored_refiner(record: dict | None, task, split, maps: dict, top1, run_dir: 
     if task.refiner is None:
         return {}
     answers = refine_answers(task, split, maps)
-    out = fine_metrics(task.refiner, split, task.refine, task.refine_candidates(), maps["refine_query"],
-                       maps["refine_reference"], maps["refine_heading"], top1, answers)
+    out = refiner_metrics(task, split, maps, top1, answers)
     if answers is None:
         return out
     calibrator = refiner_calibrator(record, refiner_condition(task.refiner, task.refine))

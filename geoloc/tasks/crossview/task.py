@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import warnings
 
-import torch
 from omegaconf import DictConfig
 
 import geoloc.losses  # noqa: F401  (declares the loss kind and registers its built-ins)
@@ -22,16 +21,12 @@ from geoloc.config import ConfigError
 from geoloc.data import samplers  # noqa: F401  (the sampler kind)
 from geoloc.engine import Task
 from geoloc.engine import distributed as dist
-from geoloc.data.relevance import Relevance
-from geoloc.eval.descriptors import check_descriptors
-from geoloc.eval.keys import guarded
-from geoloc.eval.retrieval_metrics import metric_plan, scored_metrics, split_metrics, split_plan
-from geoloc.eval.scoring import top_k
-from geoloc.tasks.crossview.heading import heading_metrics, heading_plan
+from geoloc.tasks.crossview.encode import described, encode, plain_pairs_loader
 from geoloc.tasks.crossview.transforms import normalised
 from geoloc.models.crossview import CrossViewModel, CrossViewModelConfig
 from geoloc.models.refiners import check_refiner
-from geoloc.tasks.crossview.refine import RefineConfig, fine_metrics
+from geoloc.tasks.crossview.refine import RefineConfig, refiner_metrics
+from geoloc.tasks.crossview.validation import protocol
 
 # What a loss may ask for beyond (query, reference, labels), by declaring it in its `needs` attribute: the batch as
 # the data module gives it, each branch's BranchFeatures (models/crossview.py) and the extra query views' B×V×D
@@ -79,6 +74,7 @@ class CrossViewTask(Task):
         registry.check("sampler", self.sampler_section)
         self.sampler = None
         self.split = None  # the RetrievalSplit validation scores (validate_on): its relevance and views
+        self.protocol = protocol()  # how validation encodes and scores the queries (validate_on)
         self.query_views: dict[str, str] = {}  # {"train": ..., "val": ...}: RetrievalSplit.query_view of each
         # fine-grained localisation inside the tile (refine.py), built last: a run without one builds nothing more
         self.refine = refine if refiner else None
@@ -114,8 +110,6 @@ class CrossViewTask(Task):
                                       seed=engine.seed, rank=dist.rank(), world_size=dist.world_size(),
                                       neighbours=getattr(dataset, "neighbours", None))
         if getattr(self.sampler, "needs_descriptors", False):
-            from geoloc.tasks.crossview.encode import plain_pairs_loader
-
             self._descriptor_loader = plain_pairs_loader(engine, dataset, batch_size)
         return engine.loader(dataset, batch_size, train=True, batch_sampler=self.sampler)
 
@@ -123,8 +117,6 @@ class CrossViewTask(Task):
         if hasattr(self.loss, "on_train_epoch_start"):
             self.loss.on_train_epoch_start(engine.epoch)
         if getattr(self.sampler, "needs_descriptors", False) and engine.epoch > 0:
-            from geoloc.tasks.crossview.encode import encode
-
             desc = encode(self, engine, self._descriptor_loader)
             self.sampler.set_descriptors(desc["query"], desc["reference"])
 
@@ -182,11 +174,12 @@ class CrossViewTask(Task):
             self.loss.on_train_batch_end()
 
     # ---- validation ----------------------------------------------------------------------------------------
-    def validate_on(self, split) -> None:
-        """The RetrievalSplit that validation scores: which references are relevant to which query, and which
-        branch encodes its queries. The runner sets it once the split is read."""
+    def validate_on(self, split, heading_search: bool = False) -> None:
+        """The RetrievalSplit validation scores (its relevance, the branch that encodes its queries) and how: each query
+        at K candidate headings (heading_search: dataset.random_heading) or at its own (validation.py)."""
         self.split = split
         self.query_views["val"] = split.query_view
+        self.protocol = protocol(heading_search)
 
     def val_dataloaders(self, data, batch_size, engine):
         """One-to-one splits: one loader of pairs. Others: the queries and the gallery apart."""
@@ -196,72 +189,15 @@ class CrossViewTask(Task):
                 "reference": engine.loader(data.references, batch_size, train=False)}
 
     def validation_step(self, batch, loader: str | None = None):
-        if loader is None and "heading" in batch:  # unknown heading: B×K×3×H×W candidate inputs per query
-            return {"query": candidate_descriptors(self.model.query, batch["query"]),
-                    "reference": self.model.reference(batch["reference"]), "index": batch["index"],
-                    "heading": batch["heading"]}
-        if loader is None:
-            query, reference = self.model(batch["query"], batch["reference"])
-            out = {"query": query, "reference": reference, "index": batch["index"]}
-            if self.refine is not None:
-                out.update(refine_query_map=self.refiner.encode_query(batch["refine_query"]),
-                           refine_reference_map=self.refiner.encode_reference(batch["refine_reference"]),
-                           refine_heading=batch["refine_heading"].float())
-            return out
-        query_encoder, reference_encoder = self.model.encoders(self.split is not None and self.split.aerial_queries)
-        if loader == "query" and "heading" in batch:  # the queries apart, each at K candidate headings
-            return {"descriptor": candidate_descriptors(query_encoder, batch["image"]), "index": batch["index"],
-                    "heading": batch["heading"]}
-        encoder = query_encoder if loader == "query" else reference_encoder
-        out = {"descriptor": encoder(batch["image"]), "index": batch["index"]}
-        if self.refine is not None:
-            encode = self.refiner.encode_query if loader == "query" else self.refiner.encode_reference
-            out["refine_map"] = encode(batch["refine_image"])
-            if loader == "query":
-                out["refine_heading"] = batch["refine_heading"].float()
-        return out
+        """Both sides of a batch of pairs, or the side `loader` names, as encode.described gives them: the queries
+        through the protocol's encoder, and the refiner's maps where the task has a refiner."""
+        query, reference = self.model.encoders(self.split is not None and self.split.aerial_queries)
+        encoders = {"query": self.protocol.query_encoder(query), "reference": reference}
+        sides, entry = (encoders, None) if loader is None else ({loader: encoders[loader]}, "image")
+        return {**described(self, batch, sides, self.refiner is not None, entry, self.protocol.keep),
+                "index": batch["index"]}
 
     def validation_epoch_end(self, outputs):
-        metrics = self._retrieval_metrics(outputs)
-        if self.refine is not None and self.split is not None:
-            metrics.update(self._fine_metrics(outputs))
-        return metrics
-
-    def _fine_metrics(self, outputs) -> dict:
-        """The refiner's metrics (refine.fine_metrics): each query in its positive tile and in its top-1."""
-        if isinstance(outputs.get("query"), dict):  # two loaders
-            query, reference = outputs["query"], outputs["reference"]
-            maps = (query["refine_map"], reference["refine_map"], query["refine_heading"])
-            descriptors = (query["descriptor"], reference["descriptor"])
-        else:
-            maps = (outputs["refine_query_map"], outputs["refine_reference_map"], outputs["refine_heading"])
-            descriptors = (outputs["query"], outputs["reference"])
-        return fine_metrics(self.refiner, self.split, self.refine, self.refine_candidates(), *maps,
-                            top1=lambda: top_k(*descriptors, 1)[1][:, 0].cpu().numpy())
-
-    def _retrieval_metrics(self, outputs):
-        if "query" in outputs and isinstance(outputs["query"], dict):  # two loaders
-            query, reference = outputs["query"]["descriptor"], outputs["reference"]["descriptor"]
-            heading = outputs["query"].get("heading")
-        else:
-            query, reference, heading = outputs["query"], outputs["reference"], outputs.get("heading")
-        # Non-finite descriptors raise; a collapse (ties count in the query's favour, so one shared descriptor would
-        # score R@1 = 100%) reports every metric at its worst. The same checks guard the saved-gallery path.
-        if query.ndim == 3:  # Q×K×D: each query at K candidate headings (geoloc/tasks/crossview/heading.py)
-            spread = check_descriptors(query.flatten(0, 1), reference)
-            relevance = None if self.split is None else self.split.relevance
-            return guarded(lambda: heading_metrics(query, reference, heading, relevance=relevance), spread,
-                           heading_plan())
-        spread = check_descriptors(query, reference)
-        if self.split is None:  # descriptors without their split: query i matches reference i
-            relevance = Relevance.one_to_one(query.shape[0], reference.shape[0])
-            return guarded(lambda: scored_metrics(query, reference, relevance), spread,
-                           metric_plan(relevance, (1, 5, 10), located=False))
-        return guarded(lambda: split_metrics(query, reference, self.split), spread, split_plan(self.split))
-
-
-def candidate_descriptors(encoder, candidates: torch.Tensor) -> torch.Tensor:
-    """B×K×3×H×W candidate inputs (K headings per query) -> B×K×D descriptors, encoded B images at a time as
-    without the search: K·B at once would hold K times the activations."""
-    flat = candidates.flatten(0, 1)
-    return torch.cat([encoder(part) for part in flat.split(candidates.shape[0])]).unflatten(0, candidates.shape[:2])
+        if isinstance(outputs.get("query"), dict):  # queries and references apart: {loader: its outputs}
+            outputs = {**outputs["reference"], **outputs["query"]}
+        return {**self.protocol.metrics(outputs, self.split), **refiner_metrics(self, self.split, outputs)}

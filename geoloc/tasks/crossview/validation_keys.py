@@ -9,16 +9,11 @@ from __future__ import annotations
 
 from geoloc.config import ConfigError
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.eval.average_precision import AP_KEYS
-from geoloc.eval.geo_error import METRE_KEYS
 from geoloc.eval.keys import KeySet, collapsed
-from geoloc.eval.recall import HIT_RATE_KEYS, recall_keys
-from geoloc.eval.retrieval_metrics import split_plan
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
-from geoloc.tasks.crossview.heading import heading_plan
 from geoloc.tasks.crossview.refine import RefineConfig, fine_plan
+from geoloc.tasks.crossview.validation import HeadingSearch, Retrieval, protocol
 
-KS = (1, 5, 10)  # the R@K validation reports (split_plan's and heading_plan's default)
 SPREAD = "reference_spread"  # reported beside every plan (geoloc.eval.keys.guarded)
 
 
@@ -27,12 +22,7 @@ def validation_plan(data: CrossViewDataConfig, refine: RefineConfig | None,
     """The key sets validation reports on `split` for this dataset config and refiner (None: retrieval alone);
     split=None: every set some split could give (hit rate with semi-positives, AP with labels, metres with
     positions)."""
-    if data.random_heading:  # the queries searched over candidate headings (heading.py)
-        plan = heading_plan(KS)
-    elif split is None:
-        plan = [recall_keys(KS), HIT_RATE_KEYS, AP_KEYS, METRE_KEYS]
-    else:
-        plan = split_plan(split, KS)
+    plan = protocol(data.random_heading).plan(split)  # the protocol CrossViewTask.validate_on chooses
     return plan + (fine_plan(split, refine) if refine is not None else [])
 
 
@@ -48,6 +38,6 @@ def check_monitor(monitor: str, plan: list[KeySet], where: str) -> None:
 def known_mode(key: str) -> str | None:
     """"max" or "min", the better direction of a key some cross-view validation reports (KeySet.mode), or None for
     a key it never reports."""
-    every = [recall_keys(KS), HIT_RATE_KEYS, AP_KEYS, METRE_KEYS, *heading_plan(KS),
+    every = [*Retrieval().plan(None), *HeadingSearch().plan(None),
              *fine_plan(None, RefineConfig(orientation_noise_deg=180.0))]
     return next((keys.mode(key) for keys in every if key in keys.worst), None)

@@ -20,7 +20,6 @@ from geoloc.data.relevance import Relevance
 from geoloc.eval import scoring
 from geoloc.tasks.crossview.datasets import ViewImages
 from geoloc.tasks.crossview.heading import heading_metrics
-from geoloc.tasks.crossview.task import CrossViewTask
 from geoloc.tasks.crossview.transforms import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -30,7 +29,7 @@ from geoloc.tasks.crossview.transforms import (
 from geoloc.tasks.crossview.views import circular_error_deg, eval_heading, north_window
 from torch import nn
 
-from conftest import TINY, compose_evaluate, compose_train, write_cvusa
+from conftest import TINY, compose_evaluate, compose_train, tiny_task, write_cvusa
 from helpers.crossview_runs import pairs_of, eval_data_of
 
 
@@ -99,11 +98,9 @@ def test_a_shift_covariant_encoder_finds_the_heading_to_the_column(tmp_path, fov
     cfg = CrossViewDataConfig(name="cvusa", root=str(root), alignment="polar", aerial_size=64, pano_size=[16, 64],
                               fov=fov, random_heading=True, heading_steps=64)  # one candidate per column
     data = eval_data_of(cfg, "val")
-    task = CrossViewTask.__new__(CrossViewTask)
-    nn.Module.__init__(task)
-    task.model = nn.Module()
+    task = tiny_task()
     task.model.query, task.model.reference = PixelEncoder(), PixelEncoder()
-    task.split = data.split
+    task.validate_on(data.split, heading_search=True)
     batch = torch.utils.data.default_collate([data.pairs[i] for i in range(6)])
     assert batch["query"].shape == (6, 64, 3, 16, 64)
     metrics = task.validation_epoch_end(task.validation_step(batch))
@@ -218,7 +215,6 @@ def test_a_checkpoint_from_before_the_heading_keys_still_resumes_at_their_old_va
 def test_the_heading_search_scores_queries_apart_as_it_scores_pairs(tiny_cvusa, tmp_path, one_thread, monkeypatch):
     """A split that is not one-to-one (its queries and gallery read apart: VIGOR, your own data, a padded gallery)
     searches the same candidate headings: on a one-to-one split read both ways, the metrics are the same."""
-    from conftest import tiny_task
     from geoloc.engine import Trainer, TrainerConfig
     from geoloc.tasks.crossview.datasets import EvalData, eval_sets
     from helpers.crossview_runs import split_of
@@ -235,7 +231,7 @@ def test_the_heading_search_scores_queries_apart_as_it_scores_pairs(tiny_cvusa, 
 
     monkeypatch.setattr(keys, "COLLAPSE_SPREAD", 0.0)  # an untrained tiny network: score it anyway
     task = tiny_task()
-    task.validate_on(split)
+    task.validate_on(split, heading_search=True)
     trainer = Trainer(TrainerConfig(device="cpu", num_workers=0, progress=False), run_dir=tmp_path)
     by_pairs, by_sides = (trainer.validate(task, task.val_dataloaders(data, 3, trainer.engine))
                           for data in (pairs, apart))

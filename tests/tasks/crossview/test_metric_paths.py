@@ -24,7 +24,7 @@ from geoloc.launch import run
 from geoloc.registry import register
 from geoloc.synthetic import generate
 from geoloc.tasks.crossview import figures
-from geoloc.tasks.crossview import task as task_module
+from geoloc.tasks.crossview import validation as validation_module
 from geoloc.tasks.crossview.crossview_config import evaluated_dataset
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.datasets import build_eval
@@ -86,13 +86,13 @@ def evaluate(tmp_path, ckpt, root, dataset, *extra) -> dict:
 def exact_descriptors(tmp_path, ckpt, root, dataset, monkeypatch) -> tuple[dict, torch.Tensor, torch.Tensor, object]:
     """(evaluate.py's metrics, the query and reference descriptors validation scored, the split)."""
     seen = {}
-    real = task_module.split_metrics
+    real = validation_module.split_metrics
 
     def spy(query, reference, split, *args, **kwargs):
         seen.update(query=query, reference=reference, split=split)
         return real(query, reference, split, *args, **kwargs)
 
-    monkeypatch.setattr(task_module, "split_metrics", spy)
+    monkeypatch.setattr(validation_module, "split_metrics", spy)
     metrics = evaluate(tmp_path, ckpt, root, dataset)
     monkeypatch.undo()
     return metrics, seen["query"], seen["reference"], seen["split"]

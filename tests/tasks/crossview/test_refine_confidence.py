@@ -256,6 +256,7 @@ def test_the_gallery_path_reports_the_refiner_keys_and_values_of_the_plain_evalu
     """The gallery path dropped fine_heading_* and e2e_*: an unknown-heading refiner's heading error was never
     reported from a gallery. Both paths now report refine.fine_metrics, on the same split the same numbers."""
     from geoloc.tasks.crossview.task import CrossViewTask
+    from geoloc.tasks.crossview.validation import Retrieval
 
     split = vigor_like_split()
     rng = np.random.default_rng(1)
@@ -263,11 +264,10 @@ def test_the_gallery_path_reports_the_refiner_keys_and_values_of_the_plain_evalu
     query = torch.nn.functional.normalize(reference[split.positives] + 0.5 * unit(rng, split.num_queries), dim=1)
     maps = guesses(split, 2)
     heading = torch.tensor(rng.uniform(0, 360, split.num_queries), dtype=torch.float32)
-    task = SimpleNamespace(**vars(refining_task(orientation_noise_deg=180.0)), split=split)
-    plain = CrossViewTask._fine_metrics(task, {"query": {"descriptor": query, "refine_map": maps,
-                                                         "refine_heading": heading},
-                                               "reference": {"descriptor": reference,
-                                                             "refine_map": torch.zeros(len(reference), 1)}})
+    task = SimpleNamespace(**vars(refining_task(orientation_noise_deg=180.0)), split=split, protocol=Retrieval())
+    plain = CrossViewTask.validation_epoch_end(task, {
+        "query": {"query": query, "refine_query": maps, "refine_heading": heading},
+        "reference": {"reference": reference, "refine_reference": torch.zeros(len(reference), 1)}})
     assert {"fine_median_m", "whole_tile_median_m", "fine_heading_median_deg", "e2e_median_m"} <= set(plain)
     data = EvalData(split)
     given_encoder(monkeypatch, {id(data): {"query": query, "reference": reference, "refine_query": maps,

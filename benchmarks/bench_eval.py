@@ -79,7 +79,8 @@ def stream_block(w, start, stop, seed, iso=0.1):
 
 
 def run_huge(args):
-    """The largest gallery: pq_sq8 built from a stream of blocks, saved, loaded memory-mapped, searched."""
+    """The largest gallery: --huge-kind built from a stream of blocks (in --huge-shards shards, each saved, then
+    merged as `geoloc gallery merge` does), saved, loaded memory-mapped, searched one query at a time."""
     import tempfile
 
     import faiss
@@ -95,41 +96,71 @@ def run_huge(args):
     z0, _ = stream_block(w, 0, min(block, n), args.seed)
     query = (z0[:nq] + args.large_noise * rng.standard_normal((nq, w.shape[0]), dtype=np.float32)) @ w
     query /= np.linalg.norm(query, axis=1, keepdims=True)
-    index = GalleryIndex(dim, backend="faiss", kind="pq_sq8", coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR)
+    knobs = (dict(coarse_m=args.coarse_m) if args.huge_kind == "pq_sq8" else
+             dict(nlist=args.nlist, m=args.m, nprobe=args.huge_nprobe))
+    codebook = GalleryIndex(dim, backend="faiss", kind=args.huge_kind, k_factor=IVF_K_FACTOR, **knobs)
     base = _status("VmRSS")
     exact_peak = reset_peak()
     start = time.perf_counter()
-    index.train(stream_block(w, 0, min(args.train_points, n), args.seed)[1])
+    codebook.train(stream_block(w, 0, min(args.train_points, n), args.seed)[1])
     best = np.full(nq, -np.inf, np.float32)
     best_row = np.zeros(nq, np.int64)
     exact_s = 0.0
-    for s in range(0, n, block):
-        _, ref = stream_block(w, s, min(s + block, n), args.seed)
-        index.add(ref)
-        t = time.perf_counter()
-        scores = query @ ref.T  # the exact top-1, block by block (the lower row wins a tie)
-        top = scores.argmax(1)
-        better = scores[np.arange(nq), top] > best
-        best[better], best_row[better] = scores[np.arange(nq), top][better], s + top[better]
-        exact_s += time.perf_counter() - t
-    build_s = time.perf_counter() - start - exact_s
-    res = {"case": "huge", "n_ref": n, "dim": dim, "n_query": nq, "build_s": build_s,
-           "build_peak_rise_mib": _status("VmHWM") - base, "peak_is_exact": exact_peak,
-           "exact_recall": {"R@1": float(np.mean(best_row == np.arange(nq)))}}
+    bounds = [block * round(i * n / block / args.huge_shards) for i in range(args.huge_shards)] + [n]
     with tempfile.TemporaryDirectory(dir=args.huge_dir) as tmp:
-        path = os.path.join(tmp, "gallery.pt")
-        (_, res["save_s"]) = timed(lambda: index.save(path))
-        res["index_bytes"] = os.path.getsize(os.path.join(tmp, "gallery.faiss"))
+        parts = []
+        for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:])):
+            part = codebook.trained_empty() if args.huge_shards > 1 else codebook
+            for s in range(lo, hi, block):
+                _, ref = stream_block(w, s, min(s + block, hi), args.seed)
+                part.add(ref)
+                t = time.perf_counter()
+                scores = query @ ref.T  # the exact top-1, block by block (the lower row wins a tie)
+                top = scores.argmax(1)
+                better = scores[np.arange(nq), top] > best
+                best[better], best_row[better] = scores[np.arange(nq), top][better], s + top[better]
+                exact_s += time.perf_counter() - t
+            if args.huge_shards > 1:  # a shard job's folder
+                os.makedirs(os.path.join(tmp, f"shard{i}"))
+                part.save(os.path.join(tmp, f"shard{i}", "gallery.pt"))
+                parts.append(os.path.join(tmp, f"shard{i}", "gallery.pt"))
+                del part
+        merge_s = 0.0
+        if parts:
+            t = time.perf_counter()
+            index = GalleryIndex.load(parts[0], mmap=False)
+            for part in parts[1:]:
+                index.merge(GalleryIndex.load(part, mmap=False))
+            merge_s = time.perf_counter() - t
+        else:
+            index = codebook
+        del codebook
+        build_s = time.perf_counter() - start - exact_s
+        res = {"case": "huge", "kind": args.huge_kind, "shards": args.huge_shards, "n_ref": n, "dim": dim,
+               "n_query": nq, "build_s": build_s, "merge_s": merge_s,
+               "build_peak_rise_mib": _status("VmHWM") - base, "peak_is_exact": exact_peak,
+               "exact_recall": {"R@1": float(np.mean(best_row == np.arange(nq)))}}
+        folder = os.path.join(tmp, "gallery")
+        os.makedirs(folder)
+        path = os.path.join(folder, "gallery.pt")
+        t = time.perf_counter()
+        index.save(path)
+        res["save_s"] = time.perf_counter() - t
+        res["index_bytes"] = os.path.getsize(os.path.join(folder, "gallery.faiss"))
+        res["rows_bytes"] = sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder)
+                                if f.endswith(".f16"))
         del index
-        before_load = _status("VmRSS")
+        before_load = {k: _status(k) for k in ("RssAnon", "RssFile")}
         loaded, res["load_s"] = timed(lambda: GalleryIndex.load(path))
-        res["rss_after_load_mib"] = _status("VmRSS") - before_load
+        res["rss_after_load_mib"] = sum(_status(k) - before_load[k] for k in before_load)
         rows = np.zeros((nq, 10), np.int64)
         t = time.perf_counter()
         for i in range(nq):  # one query at a time
             rows[i] = loaded.search(query[i:i + 1], 10)[1][0].numpy()
         res["ms_per_query"] = 1e3 * (time.perf_counter() - t) / nq
-        res["rss_after_search_mib"] = _status("VmRSS") - before_load
+        res["rss_after_search_mib"] = sum(_status(k) - before_load[k] for k in before_load)
+        res["own_after_search_mib"] = _status("RssAnon") - before_load["RssAnon"]
+        res["mapped_after_search_mib"] = mapped_rss(folder)
         res["recall"] = recall_from_topk(rows)
     res["peak_mib"] = _status("VmHWM") - base
     res["load"] = load_average()
@@ -264,7 +295,8 @@ def reopened(folder):
 
 def mapped_rss(folder):
     """MiB resident of the files mapped from `folder`, by suffix (/proc/self/smaps): the codes (.faiss) and the
-    float16 rows (.f16)."""
+    float16 rows (.f16); capped at the files' sizes, since a file mapped several times counts its pages in each
+    mapping."""
     out, suffix = {".faiss": 0.0, ".f16": 0.0}, None
     with open("/proc/self/smaps") as f:
         for line in f:
@@ -273,7 +305,9 @@ def mapped_rss(folder):
                 suffix = next((s for s in out if head[-1].startswith(folder) and head[-1].endswith(s)), None)
             elif suffix and line.startswith("Rss:"):
                 out[suffix] += int(head[1]) / 1024
-    return out
+    sizes = {s: sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder) if f.endswith(s)) / 2**20
+             for s in out}
+    return {s: min(out[s], sizes[s]) for s in out}
 
 
 def recall_from_topk(idx):
@@ -348,14 +382,19 @@ def main(args, argv):
         r = spawn("huge", argv)
         results.append(r)
         kept = 100 * r["recall"]["R@1"] / r["exact_recall"]["R@1"]
-        print(f"\n[3] largest gallery: pq_sq8 (m {args.coarse_m}x4 + SQ8, k_factor {IVF_K_FACTOR}), "
-              f"{r['n_ref']:,} references, D = {r['dim']} ({r['n_ref'] * r['dim'] * 4 / 2**30:.1f} GiB of float32, "
+        what = (f"pq_sq8 (m {args.coarse_m}x4 + SQ8" if r["kind"] == "pq_sq8" else
+                f"ivfpq_disk (nlist {args.nlist} m {args.m}x4 + float16 rows, nprobe {args.huge_nprobe}")
+        mapped = r["mapped_after_search_mib"]
+        print(f"\n[3] largest gallery: {what}, k_factor {IVF_K_FACTOR}), {r['n_ref']:,} references in "
+              f"{r['shards']} shard(s), D = {r['dim']} ({r['n_ref'] * r['dim'] * 4 / 2**30:.1f} GiB of float32, "
               f"never held), {r['n_query']} queries one at a time, {args.threads} thread(s)\n"
-              f"  build (train + add, streamed) {r['build_s']:.0f} s, peak RSS rise {r['build_peak_rise_mib']:.0f} "
-              f"MiB; index file {r['index_bytes'] / 2**30:.2f} GiB ({r['index_bytes'] / r['n_ref']:.1f} B a "
-              f"reference, {r['index_bytes'] / r['n_ref'] * 1e6 / 2**30:.3f} GiB per million); save "
-              f"{r['save_s']:.0f} s, memory-mapped load {r['load_s']:.1f} s (+{r['rss_after_load_mib']:.0f} MiB RSS, "
-              f"+{r['rss_after_search_mib']:.0f} MiB after the searches)\n"
+              f"  build (train + add, streamed; merge {r['merge_s']:.0f} s) {r['build_s']:.0f} s, peak RSS rise "
+              f"{r['build_peak_rise_mib']:.0f} MiB; index file {r['index_bytes'] / 2**30:.2f} GiB "
+              f"({r['index_bytes'] / r['n_ref']:.1f} B a reference), float16 rows on disk "
+              f"{r['rows_bytes'] / 2**30:.2f} GiB; save {r['save_s']:.0f} s, memory-mapped load {r['load_s']:.1f} s "
+              f"(+{r['rss_after_load_mib']:.0f} MiB RSS, +{r['rss_after_search_mib']:.0f} MiB after the searches: "
+              f"{r['own_after_search_mib']:.0f} own, {mapped['.faiss']:.0f} of the codes' pages, "
+              f"{mapped['.f16']:.0f} of the rows' pages)\n"
               f"  {r['ms_per_query']:.2f} ms/query; R@1 {100 * r['recall']['R@1']:.1f}% against the exact "
               f"{100 * r['exact_recall']['R@1']:.1f}% ({kept:.1f}% kept)   load avg {r['load']}")
     if not all(r["peak_is_exact"] for r in results):
@@ -389,7 +428,10 @@ if __name__ == "__main__":
     parser.add_argument("--repeat", type=int, default=2, help="searches per setting (best and worst printed)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--huge-n", type=int, default=0, help="the largest gallery (pq_sq8, streamed; 0 skips)")
+    parser.add_argument("--huge-n", type=int, default=0, help="the largest gallery (streamed; 0 skips)")
+    parser.add_argument("--huge-kind", default="pq_sq8", choices=["pq_sq8", "ivfpq_disk"])
+    parser.add_argument("--huge-shards", type=int, default=1, help="built in this many shards, then merged")
+    parser.add_argument("--huge-nprobe", type=int, default=256, help="ivfpq_disk: lists visited per query")
     parser.add_argument("--huge-queries", type=int, default=300, help="its queries, timed one at a time")
     parser.add_argument("--huge-dir", default=None, help="where its index file is written (default: the temp dir)")
     parser.add_argument("--case", help=argparse.SUPPRESS)

@@ -20,6 +20,7 @@ from geoloc.gallery.confidence import TOP1, calibrators, confidence_report, inde
 
 AUTO_APPROXIMATE = "pq_refine"  # what kind=auto builds for large galleries (benchmarks/README.md, 1M references)
 AUTO_COMPACT = "pq_sq8"  # ... and when their float32 vectors exceed gallery.max_memory (a quarter of the bytes)
+AUTO_DISK = "ivfpq_disk"  # ... and when even pq_sq8's (dim + 16 bytes a reference) would: 40 bytes, the rest on disk
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12, "kib": 2**10, "mib": 2**20,
           "gib": 2**30, "tib": 2**40}
 
@@ -75,12 +76,15 @@ class GalleryConfig(IndexParams):
 
     def resolved(self, num_references: int, dim: int) -> tuple[str, str]:
         """(backend, kind) to build for a gallery of ``num_references`` of ``dim``: kind=auto picks flat,
-        AUTO_APPROXIMATE or, when the float32 vectors would not fit in max_memory, AUTO_COMPACT."""
+        AUTO_APPROXIMATE or, when the float32 vectors would not fit in max_memory, AUTO_COMPACT, and AUTO_DISK when
+        not even its codes would."""
         if self.kind != "auto":
             return self.backend, self.kind
         if num_references < self.auto_exact_below:
             return self.backend, "flat"
-        kind = AUTO_APPROXIMATE if num_references * dim * 4 <= memory_bytes(self.max_memory) else AUTO_COMPACT
+        budget = memory_bytes(self.max_memory)
+        kind = (AUTO_APPROXIMATE if num_references * dim * 4 <= budget else
+                AUTO_COMPACT if num_references * (dim + 16) <= budget else AUTO_DISK)
         try:
             import_faiss()
         except ImportError as e:

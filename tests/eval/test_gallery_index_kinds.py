@@ -157,6 +157,9 @@ def test_gallery_config_kind_auto_and_errors():
     # the float32 vectors of 4M x 512 are 8 GiB: pq_refine keeps them; one reference more and pq_sq8 is built
     assert cfg.max_memory == "8GiB" and cfg.resolved(4 * 2**20, 512) == ("faiss", "pq_refine")
     assert cfg.resolved(4 * 2**20 + 1, 512) == ("faiss", "pq_sq8")
+    # pq_sq8 holds 512 + 16 bytes a reference: 16,268,009 of them fit in 8 GiB, one more goes to disk
+    assert cfg.resolved(8 * 2**30 // 528, 512) == ("faiss", "pq_sq8")
+    assert cfg.resolved(8 * 2**30 // 528 + 1, 512) == ("faiss", "ivfpq_disk")
     assert GalleryConfig(max_memory="100MB").resolved(cfg.auto_exact_below, 256) == ("faiss", "pq_sq8")  # 102 MB
     assert GalleryConfig(max_memory="103MB").resolved(cfg.auto_exact_below, 256) == ("faiss", "pq_refine")
     assert GalleryConfig(max_memory=102_400_000).resolved(cfg.auto_exact_below, 256) == ("faiss", "pq_refine")

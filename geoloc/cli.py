@@ -28,7 +28,7 @@ SUBCOMMANDS = {  # name: (module, what it does, the pyproject extra it needs)
                    "distractors and on another dataset", None),
     "bench": ("geoloc.apps.bench.command", "many checkpoints x test sets x FoV / heading protocols in one table, "
               "beside the published figures", None),
-    "gallery": ("geoloc.apps.gallery.command", "merge SHARD_DIR... out=DIR: one gallery from shard jobs", "faiss"),
+    "gallery": ("geoloc.apps.gallery.command", "merge SHARD_DIR... | append GALLERY_DIR PART_DIR... out=DIR: one gallery from shard jobs, or grown by new references", "faiss"),
     "list": ("geoloc.apps.components.listing", "every registered component (dataset, backbone, loss...) and its "
              "config keys", None),
 }

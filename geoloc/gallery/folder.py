@@ -46,6 +46,7 @@ from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.engine.checkpoint import file_sha256, umask
 from geoloc.eval.search_index import GalleryIndex, faiss_file, index_files
 from geoloc.gallery.confidence import check_record
+from geoloc.gallery.index_settings import capped_nlist
 from geoloc.gallery.places import Places, read_places, split_record, write_places
 
 INFO, INDEX, CALIBRATION = "gallery.json", "gallery.pt", "calibration.json"
@@ -226,6 +227,9 @@ def check_split(folder: Path, info: dict, split: RetrievalSplit, dataset: str, c
     if not differs and info["references_sha256"] != here["references_sha256"]:
         differs = ["the reference list: the same number of references, in another order or other files "
                    "(references_sha256 differs)"]
+    if differs and info.get("appended"):
+        differs.append(f"it holds references appended from {len(info['appended'])} other part(s) (geoloc gallery "
+                       "append), so it is the gallery of no one split")
     if differs:
         raise ConfigError(f"the gallery in {folder} was built from another split than the one scored here: "
                           f"{'; '.join(differs)}. Its row j would not be this split's reference j, so the recall "
@@ -264,10 +268,12 @@ def open_gallery(folder: str | Path, fingerprint: str, ckpt, device=None, split:
     return SavedGallery(folder, info, index, places, calibration)
 
 
-def open_codebook(folder: str | Path, fingerprint: str, ckpt, split: RetrievalSplit, dataset: str, kind: str,
-                  params: dict) -> SavedGallery:
-    """The codebook in `folder` (gallery.train_only=true), refused unless it was trained by these weights on this
-    split's references for an index of `kind` with these knobs `params` (the ones that shape its quantisers)."""
+def open_codebook(folder: str | Path, fingerprint: str, ckpt, kind: str | None, params: dict) -> SavedGallery:
+    """The codebook in `folder` (gallery.train_only=true), refused unless it was trained by these weights for an
+    index of `kind` (None: gallery.kind=auto, the codebook's) with the knobs `params` as gallery.* gives them (the
+    ones that shape its quantisers; nlist as capped on the references it trained on). It may have been trained on
+    another split's references: new references appended to a gallery (gallery/append.py) are filled from the
+    gallery's codebook."""
     folder = Path(folder)
     info = read_info(folder, ckpt)
     if info.get("part", {}).get("role") != "codebook":
@@ -275,8 +281,9 @@ def open_codebook(folder: str | Path, fingerprint: str, ckpt, split: RetrievalSp
                           f"ckpt={ckpt} gallery.train_only=true gallery.save={folder} (with the shards' gallery.kind "
                           "and knobs)")
     check_weights(folder, info, fingerprint, ckpt)
-    check_split(folder, {**info, "num_references": info["part"]["split_references"]}, split, dataset, ckpt)
-    differs = [f"{k} {info.get(k)!r} (codebook) vs {v!r} (here)" for k, v in {"kind": kind, **params}.items()
+    wanted = {**({} if kind is None else {"kind": kind}), **params,
+              "nlist": capped_nlist(params["nlist"], info["part"]["split_references"])}
+    differs = [f"{k} {info.get(k)!r} (codebook) vs {v!r} (here)" for k, v in wanted.items()
                if k in ("kind", "nlist", "m", "nbits", "coarse_m", "hnsw_m") and info.get(k) != v]
     if differs:
         raise ConfigError(f"the codebook in {folder} was trained for another index: {'; '.join(differs)}. Give "

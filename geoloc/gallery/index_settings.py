@@ -98,8 +98,8 @@ def index_knobs(cfg: GalleryConfig, num_references: int, dim: int) -> tuple[str,
     """(backend, kind, knobs) to build for `num_references` of `dim`; a kind that cannot train on so few, or whose
     sub-quantisers do not divide `dim`, is refused."""
     backend, kind = cfg.resolved(num_references, dim)
-    knobs = {f.name: getattr(cfg, f.name) for f in fields(IndexParams)}
-    knobs["nlist"] = max(1, min(cfg.nlist, num_references // 39))
+    knobs = requested_knobs(cfg)
+    knobs["nlist"] = capped_nlist(cfg.nlist, num_references)
     needed, trains = training_points(kind, knobs)
     if num_references < needed:
         raise ConfigError(f"gallery.kind={cfg.kind} builds {kind}, which trains {trains} and so needs at least "
@@ -110,6 +110,17 @@ def index_knobs(cfg: GalleryConfig, num_references: int, dim: int) -> tuple[str,
         raise ConfigError(f"gallery.kind={cfg.kind} builds {kind}, whose gallery.{knob}={m} sub-quantisers must "
                           f"divide the descriptor dim {dim}: set gallery.{knob} to a divisor of it")
     return backend, kind, IndexParams(**knobs)
+
+
+def capped_nlist(nlist: int, num_references: int) -> int:
+    """The inverted lists an IVF kind trains on `num_references`: at most one per 39 of them (FAISS's minimum
+    training points per list)."""
+    return max(1, min(nlist, num_references // 39))
+
+
+def requested_knobs(cfg: GalleryConfig) -> dict:
+    """The index knobs as gallery.* gives them (nlist before it is capped by the references a codebook trains on)."""
+    return {f.name: getattr(cfg, f.name) for f in fields(IndexParams)}
 
 
 def empty_index(cfg: GalleryConfig, num_references: int, dim: int) -> GalleryIndex:

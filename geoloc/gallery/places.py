@@ -36,6 +36,12 @@ def _rel(path: Path, root: Path) -> str:
         return str(path)
 
 
+def rebased(path: str, root: str | Path, new_root: str | Path) -> str:
+    """A references.jsonl path under `root` as a gallery whose root is `new_root` writes it: relative to
+    `new_root` where the file lies under it, else absolute (an appended gallery's references from other roots)."""
+    return _rel(Path(root) / path, Path(new_root))
+
+
 def _position(kind: str | None, row) -> dict:
     return {} if kind is None or row is None else dict(zip(POSITION_KEYS[kind], map(float, row)))
 

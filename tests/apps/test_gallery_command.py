@@ -1,4 +1,4 @@
-"""`geoloc gallery merge`: its keys are geoloc/conf/gallery_merge.yaml over MergeKeys, composed in Hydra's grammar as
+"""`geoloc gallery merge`: its keys are geoloc/conf/gallery_folders.yaml over FolderKeys, composed in Hydra's grammar as
 the other verbs compose theirs; a bad one is refused in one line before any shard is read."""
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ def test_the_shard_folders_are_the_arguments_without_an_equals_sign_and_the_keys
 
 @pytest.mark.parametrize("keys, says", [
     (["out=m", "overwrit=true"], "bad 'gallery merge' config: Could not override 'overwrit'."),
-    (["out=m", "+overwrit=true"], "bad 'gallery merge' config: Key 'overwrit' not in 'MergeKeys'"),
+    (["out=m", "+overwrit=true"], "bad 'gallery merge' config: Key 'overwrit' not in 'FolderKeys'"),
     (["out=m", "overwrite=maybe"], "bad 'gallery merge' config: Value 'maybe' is not a valid bool (type str)"),
-    ([], "bad 'gallery merge' config: Structured config of type `MergeKeys` has missing mandatory value: out"),
+    ([], "bad 'gallery merge' config: Structured config of type `FolderKeys` has missing mandatory value: out"),
 ])
 def test_a_bad_key_is_one_line_naming_it_and_exit_2_before_any_shard_is_read(merged, capsys, keys, says):
     assert cli.main(["gallery", "merge", "s0", *keys]) == 2

@@ -43,8 +43,8 @@ from geoloc.eval.scoring import top_k
 from geoloc.eval.search_index import training_rows
 from geoloc.gallery.confidence import NO_HOLDOUT, across_jobs, fit_top1, uncalibrated, with_positives, with_refiner
 from geoloc.gallery.folder import open_codebook, open_gallery, save_gallery
-from geoloc.gallery.index_settings import (GalleryConfig, build_index, empty_index, index_knobs, scored_confidence,
-                                           shard_rows, top1_rows)
+from geoloc.gallery.index_settings import (GalleryConfig, build_index, empty_index, index_knobs, requested_knobs,
+                                           scored_confidence, shard_rows, top1_rows)
 from geoloc.tasks.crossview.datasets import EvalData, holdout_rule
 from geoloc.tasks.crossview.encode import encode
 from geoloc.tasks.crossview.refine_confidence import fitted_within, scored_refiner
@@ -150,13 +150,14 @@ def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig
     (shard_calibration, from the `held_out` queries). Nothing is scored: the merged gallery is (`geoloc gallery
     merge`, then evaluate.py gallery.load=)."""
     split, dim = data.split, task.model_cfg.dim
-    index = empty_index(cfg, split.num_references, dim)
     codebook = None
-    if cfg.codebook:
-        codebook = open_codebook(cfg.codebook, meta["model_fingerprint"], meta["ckpt"], split, meta["dataset"],
-                                 kind=index.kind, params=index.params)
+    if cfg.codebook:  # its kind and knobs, whatever this split's size (new references appended to a gallery)
+        codebook = open_codebook(cfg.codebook, meta["model_fingerprint"], meta["ckpt"],
+                                 kind=None if cfg.kind == "auto" else cfg.kind, params=requested_knobs(cfg))
         index = codebook.index.trained_empty()
-    elif not cfg.train_only and not index.is_trained:
+    else:
+        index = empty_index(cfg, split.num_references, dim)
+    if not cfg.codebook and not cfg.train_only and not index.is_trained:
         raise ConfigError(f"gallery.kind={cfg.kind} builds {index.kind}, which trains a codebook, and each shard "
                           f"must be filled from the same one: build it once with gallery.train_only=true "
                           f"gallery.save=CODEBOOK_DIR, then give gallery.codebook=CODEBOOK_DIR to every shard job")

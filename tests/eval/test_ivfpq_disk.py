@@ -124,3 +124,27 @@ def test_a_merge_links_the_shards_rows_instead_of_writing_them_again(data, tmp_p
     whole.add(reference)
     loaded = GalleryIndex.load(tmp_path / "out" / "gallery.pt")
     torch.testing.assert_close(loaded.search(query, 10), whole.search(query, 10), rtol=0, atol=0)
+
+
+def test_a_saved_ivfpq_disk_gallery_is_refused_to_other_weights_a_reordered_split_and_with_a_cut_rows_file(
+        monkeypatch, tmp_path):
+    from geoloc.config import ConfigError
+    from geoloc.gallery import open_gallery
+    from tests.helpers.gallery_runs import META, gallery_evaluate, pairs_split
+
+    rng = np.random.default_rng(0)
+    reference = torch.from_numpy(unit(rng.standard_normal((120, DIM)).astype(np.float32)))
+    split = pairs_split(120, tmp_path / "data")
+    folder = tmp_path / "gallery"
+    gallery_evaluate(monkeypatch, split, reference, reference, save=str(folder), backend="faiss", kind="ivfpq_disk",
+                     m=8)
+    assert len(open_gallery(folder, META["model_fingerprint"], META["ckpt"], split=split, dataset="pairs").index) == 120
+    with pytest.raises(ConfigError, match="was built with other weights"):
+        open_gallery(folder, "b" * 64, META["ckpt"])
+    split.references.reverse()
+    with pytest.raises(ConfigError, match=r"another split .*references_sha256 differs"):
+        open_gallery(folder, META["model_fingerprint"], META["ckpt"], split=split, dataset="pairs")
+    rows = folder / "gallery.0.f16"
+    rows.write_bytes(rows.read_bytes()[:-64])
+    with pytest.raises(ConfigError, match=r"gallery\.0\.f16 hold .* bytes, .* were written"):
+        open_gallery(folder, META["model_fingerprint"], META["ckpt"])

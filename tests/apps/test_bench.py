@@ -78,6 +78,10 @@ def test_test_sets_read_a_given_root_or_their_embedded_world():
     assert data_overrides(TEST_SETS["cvusa"], {}) == (["dataset=synthetic", "dataset.split=val"], True)
     assert data_overrides(TEST_SETS["vigor_cross"], {}) == (
         ["dataset=vigor", "dataset.setting=cross_area", "dataset.root=null"], True)
+    # VIGOR's two label sets: the corrected ones where the root holds them, the original ones named
+    assert data_overrides(TEST_SETS["vigor_same_original"], {"vigor": "/data/VIGOR"}) == (
+        ["dataset=vigor", "dataset.setting=same_area", "dataset.splits_dir=splits", "dataset.root=/data/VIGOR"], False)
+    assert TEST_SETS["vigor_same_original"].published_as == "vigor_same" == TEST_SETS["vigor_same"].published_as
     assert split_args(["sets=[cvusa]", "dataset.max_val=4"]) == (["sets=[cvusa]"], ["dataset.max_val=4"])
     with pytest.raises(ConfigError, match="dataset= is not a geoloc bench key"):
         split_args(["dataset=vigor"])
@@ -102,3 +106,16 @@ def test_every_published_figure_names_its_source_and_protocol():
     assert all(a["test_set"] in TEST_SETS and a["heading"] in ("known", "unknown") for a in anchors)
     assert [a["method"] for a in matching("vigor_same", 360, "known")] == ["Sample4Geo"]
     assert matching("cvusa", 90, "known") == []  # a figure stands beside its own protocol only
+
+
+def test_the_original_labels_need_a_released_root_and_share_the_published_figures(trained, tmp_path):
+    from geoloc.apps.bench.report import published_beside
+
+    _, _, ckpt = trained
+    record = bench([f"ckpts=[{ckpt}]", "sets=[vigor_same_original,vigor_cross_original]", f"out={tmp_path / 'o'}",
+                    "device=cpu", "progress=false"])
+    assert record["rows"] == []
+    assert record["notes"][0].startswith("vigor_same_original, vigor_cross_original: VIGOR's original labels, "
+                                         "scored on a released root alone (vigor=DIR)")
+    row = {"test_set": "vigor_same_original", "published_as": "vigor_same", "fov": 360.0, "heading": "known"}
+    assert published_beside(row) == matching("vigor_same", 360.0, "known")

@@ -95,6 +95,11 @@ def bench(args: list[str]) -> dict:
     if any(not t.panorama for t in sets) and [(p.fov, p.heading) for p in panorama] != [(360.0, "known")]:
         notes.append("University-1652's queries are photos: scored at their own view alone (FoV 360, heading "
                      "known), not under the panorama protocols.")
+    unreleased = [t.name for t in sets if t.released_only and not roots.get(t.root_key)]
+    if unreleased:
+        notes.append(f"{', '.join(unreleased)}: VIGOR's original labels, scored on a released root alone (vigor=DIR); "
+                     "the embedded world has one label set, which the vigor_same / vigor_cross rows show.")
+        sets = [t for t in sets if t.name not in unreleased]
     cells = tqdm([(run, t) for run in runs for t in sets], desc="bench", disable=not cfg.progress)
     for (name, ckpt), test in cells:
         cells.set_postfix_str(f"{name} on {test.name}")
@@ -126,7 +131,8 @@ def bench_cell(name: str, ckpt: Path, test, chosen: list, roots: dict, dataset: 
     state = ckpt_io.load(ckpt)
     stored = stored_config(state)
     metrics, split = score_protocols(restored_task(state, ckpt, stored), stored, configs)
-    return [{"checkpoint": name, "ckpt": str(ckpt), "test_set": test.name, "synthetic": synthetic,
+    return [{"checkpoint": name, "ckpt": str(ckpt), "test_set": test.name, "published_as": test.published_as,
+             "synthetic": synthetic,
              "split": split["split"], "labels": split["labels"], "protocol": p.name, "fov": p.fov,
              "heading": p.heading, "overrides": [*data, *dataset, *p.overrides()], "metrics": m}
             for p, m in zip(chosen, metrics)]

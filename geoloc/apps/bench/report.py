@@ -10,13 +10,19 @@ from geoloc.apps.bench.published import matching, published, source
 
 METRICS = ("R@1", "R@5", "R@10", "R@1%", "hit_rate", "AP")  # recall-like: shown in %
 HEADING = "heading_median_deg"
+METRES = "median_m"  # the top-1 tile centre's distance to the query (VIGOR's metres: they depend on the label set)
 COLUMNS = ("checkpoint", "test set", "data", "protocol", "queries", "references", *METRICS,
-           "heading error (°)", "labels", "published R@1 (same protocol)")
+           "heading error (°)", "median m", "labels", "published R@1 (same protocol)")
+
+
+def published_beside(row: dict) -> list[dict]:
+    """The published figures of `row`'s test set (its label-set variant shares them) and protocol."""
+    return matching(row.get("published_as", row["test_set"]), row["fov"], row["heading"])
 
 
 def cells(row: dict, footnotes: dict[str, int]) -> list[str]:
     m = row["metrics"]
-    anchors = matching(row["test_set"], row["fov"], row["heading"])
+    anchors = published_beside(row)
     for anchor in anchors:
         footnotes.setdefault(source(anchor), len(footnotes) + 1)
     beside = "; ".join(f"{a['method']} {a['metrics']['R@1']:.2f} [{footnotes[source(a)]}]"
@@ -24,7 +30,8 @@ def cells(row: dict, footnotes: dict[str, int]) -> list[str]:
     return [row["checkpoint"], row["test_set"], "synthetic" if row["synthetic"] else "released", row["protocol"],
             str(m.get("num_queries", "")), str(m.get("num_references", "")),
             *(f"{100 * m[k]:.2f}" if isinstance(m.get(k), float) else "-" for k in METRICS),
-            f"{m[HEADING]:.1f}" if isinstance(m.get(HEADING), float) else "-", row.get("labels") or "-",
+            f"{m[HEADING]:.1f}" if isinstance(m.get(HEADING), float) else "-",
+            f"{m[METRES]:.2f}" if isinstance(m.get(METRES), float) else "-", row.get("labels") or "-",
             beside or "-"]
 
 
@@ -57,5 +64,5 @@ def record(rows: list[dict], settings: dict, notes: list[str], seconds: float) -
     """Everything: the settings, every row with all of evaluate.py's metrics and the published figures beside it,
     the sources."""
     return {"settings": settings, "seconds": round(seconds, 1), "notes": list(notes),
-            "rows": [{**row, "published": matching(row["test_set"], row["fov"], row["heading"])} for row in rows],
+            "rows": [{**row, "published": published_beside(row)} for row in rows],
             "not_entered": published()["not_entered"]}

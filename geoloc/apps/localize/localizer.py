@@ -34,7 +34,6 @@ from geoloc.apps.query import (SEARCH, QueryError, QueryLimits, QuerySettings, c
 from geoloc.config import ConfigError
 from geoloc.data.validate import decode_rgb
 from geoloc.data.geo import distance_m, offset_to_latlon
-from geoloc.data.io import read_rgb
 from geoloc.data.relevance import Relevance
 from geoloc.eval.calibration import Calibrator, retrieval_features
 from geoloc.eval.candidates import merge_headings, rank_candidates
@@ -203,7 +202,7 @@ class Localizer:
         the refiner takes them (CrossViewEncoder.refine), so the memory does not grow with topk."""
         query = self.encoder.refine_query(image, answer.heading_deg, view=self.view)
         rows = [hit["row"] for hit in answer.topk]
-        out = self.encoder.refine(query, lambda i: _tile(self.places.root, answer.topk[i]["path"]),
+        out = self.encoder.refine(query, lambda i: self.places.tile_image(answer.topk[i]["path"]),
                                   self.places.reference_extent_m[rows])
         if out is None:
             return
@@ -293,14 +292,6 @@ def _tile_pixel(east: float, north: float, size_px, extent_m) -> dict:
     row = height / 2 - float(north) * height / float(extent_h)
     col = width / 2 + float(east) * width / float(extent_w)
     return {"tile_px": [row, col], "tile_size_px": [int(height), int(width)]}
-
-
-def _tile(root: Path, path: str) -> np.ndarray | None:
-    """A gallery tile's image, or None when it is not there (a gallery moved away from its images)."""
-    try:
-        return read_rgb(Path(root) / path)
-    except (OSError, ValueError):
-        return None
 
 
 def check_street(path: Path, check=None) -> bytes:

@@ -5,11 +5,12 @@ A query's work grows with:
 - the 360° canvas the view is placed on (geoloc/tasks/crossview/views.py): W·360/fov columns by H rows, so a 1°
   photo makes a canvas 360 times its width, and OpenCV's remap (the IPT) takes fewer than 32,767 of either;
 - the candidate headings searched when the heading is unknown (heading_steps), one query-branch pass each.
-Each has a limit (QueryLimits). `check_size` runs on the image's header, before anything is decoded or allocated,
-and again on the decoded image (both through a Localizer's `check`). The settings are parsed once, at the door
-(localize.py's keys, the service's form), by `check_settings` into a QuerySettings that everything below trusts;
-`check_topk` and `check_headings` hold the limits on topk and heading_steps. Past a limit, or on a bad setting,
-QueryError names the key, the value, the limit and what to do. `image_size` reads the header.
+Each has a limit (QueryLimits). The settings are parsed once, at the door (localize.py's keys, the service's form),
+by `check_settings` into a QuerySettings that everything below trusts, topk held to max_topk there; `check_headings`
+holds heading_steps to max_headings when a localizer is loaded. `check_size` (through a Localizer's `check`) runs on
+an image's header, which `image_size` reads, before anything is decoded or allocated, and on the array the
+localizer is given: decoding may turn an image (its EXIF orientation), and a caller's array has no header. Past a
+limit, or on a bad setting, QueryError names the key, the value, the limit and what to do.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class QuerySettings:
     heading: Any = None
     heading_prior: float | None = None  # ± degrees around `heading` the search tries; None: heading taken as exact
     abstain: float | None = None  # answers less confident than this abstain; None: never
-    refine: bool = True  # refine the top-k tiles' positions where the checkpoint can (Localizer.refines)
+    refine: bool = True  # refine the top-k positions where the checkpoint can (Localizer.settings: whether it does)
 
 
 SETTINGS = tuple(f.name for f in fields(QuerySettings))  # the settings' keys, as localize.py and the form take them
@@ -116,7 +117,7 @@ def _flag(key: str, value) -> bool:
 def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_topk: int | None = None,
                    heading_prior: Any = None, abstain: Any = None, refine: Any = None) -> QuerySettings:
     """Settings as given (numbers, or text as a form sends them; None: the default) -> QuerySettings, or QueryError
-    naming the setting; topk is held to max_topk when it is given (check_topk)."""
+    naming the setting; topk is held to max_topk when it is given (413)."""
     default = QuerySettings()
     number = default.fov if fov is None else _number("fov", fov)
     if not 0.0 < number <= 360.0:
@@ -131,8 +132,9 @@ def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_t
         if number < 1:
             raise _bad("topk", topk, "is below 1")
         topk = int(number)
-    if max_topk is not None:
-        check_topk(topk, max_topk)
+    if max_topk is not None and topk > max_topk:
+        raise QueryError("max_topk", f"topk={topk} is over the limit of {max_topk} references an answer lists "
+                                     "(max_topk): ask for fewer", 413)
     if heading is None or heading == "":
         heading = default.heading
     elif isinstance(heading, str) and heading.strip().lower() == SEARCH:
@@ -150,13 +152,6 @@ def check_settings(fov: Any = None, topk: Any = None, heading: Any = None, max_t
         raise _bad("abstain", abstain, "is outside [0, 1]")
     refine = default.refine if refine is None or refine == "" else _flag("refine", refine)
     return QuerySettings(fov, topk, heading, prior, threshold, refine)
-
-
-def check_topk(topk: int, max_topk: int) -> None:
-    """QueryError (413) when topk is over max_topk."""
-    if topk > max_topk:
-        raise QueryError("max_topk", f"topk={topk} is over the limit of {max_topk} references an answer lists "
-                                     "(max_topk): ask for fewer", 413)
 
 
 def check_headings(steps: int, limits: QueryLimits) -> int:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from geoloc.config import ConfigError
+from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
 
 POSITION_KEYS = {"latlon": ("lat", "lon"), "xy": ("x_m", "y_m")}
@@ -98,6 +99,14 @@ class Places:
         if self.reference_positions is not None:
             out.update(_position(self.kind, self.reference_positions[row]))
         return out
+
+    def tile_image(self, path: str) -> np.ndarray | None:
+        """A reference's image file (`path` as `reference` gives it) as H×W×3 uint8 RGB, or None when it is not
+        there (a gallery moved away from its images)."""
+        try:
+            return read_rgb(self.root / path)
+        except (OSError, ValueError):
+            return None
 
     def query_of(self, image: Path | None) -> dict | None:
         """The split's line for this image file, or None when it is not one of the split's queries."""

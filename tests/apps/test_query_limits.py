@@ -20,12 +20,12 @@ from test_localize import gallery  # noqa: F401  (a fixture: a 1-epoch TINY chec
 from test_serve import RED, FakeLocalizer, assert_still_serving, jpeg, png, serving
 
 from geoloc import cli
-from geoloc.apps.localize import Localizer
-from geoloc.apps.localize import localizer as localizer_module
+from geoloc.apps.localize import Localizer, read_street
 from geoloc.apps.query import QueryError, QueryLimits, check_settings
 from geoloc.apps.serve import create_app, upload
 from geoloc.apps.serve.command import ServeConfig
 from geoloc.config import ConfigError
+from geoloc.data import io
 from geoloc.launch.hydra_hooks import compose_checked
 
 
@@ -206,7 +206,7 @@ def test_the_localizer_checks_before_it_allocates_and_encodes_a_few_headings_at_
     batches = []
     encode = loc.encoder.encode_street
     monkeypatch.setattr(loc.encoder, "encode_street", lambda x: batches.append(len(x)) or encode(x))
-    image = localizer_module.read_street(root / "streetview/panos/0000013.jpg")
+    image = read_street(root / "streetview/panos/0000013.jpg")
     answer = loc.localize(image, topk=3, heading="search")  # the search: this checkpoint would answer at north
     assert batches == [12, 8]  # 20 candidates, CANDIDATES_PER_PASS at a time
     inputs, _ = loc.encoder.street_inputs(image, 360.0, None, 20)
@@ -235,7 +235,7 @@ def test_serve_checks_heading_steps_as_the_localizer_does_before_loading():
 @pytest.mark.slow
 def test_the_heading_search_stops_at_the_servers_time_limit(loaded):
     root, _, _, loc = loaded
-    image = localizer_module.read_street(root / "streetview/panos/0000013.jpg")
+    image = read_street(root / "streetview/panos/0000013.jpg")
     with pytest.raises(QueryError, match="ran past its time limit before all its candidate headings") as caught:
         loc.localize(image, deadline=time.monotonic() - 1)
     assert caught.value.status == 503
@@ -277,7 +277,7 @@ def test_localize_py_refuses_an_image_over_a_limit_from_its_header(gallery, tmp_
     strip = tmp_path / "strip.png"
     strip.write_bytes(png(np.zeros((1, 65_500, 3), np.uint8)))
     decoded = []
-    monkeypatch.setattr(localizer_module, "decode_rgb", lambda *a, **k: decoded.append(1))
+    monkeypatch.setattr(io, "decode_rgb", lambda *a, **k: decoded.append(1))  # what localize.py decodes with
     with pytest.raises(QueryError, match=rf"{strip}, a fov=360 view 65,500 columns wide.*max_canvas_side"):
         localize(compose_localize(ckpt, folder, strip, tmp_path / "out"))
     small = tmp_path / "small.png"
@@ -285,6 +285,24 @@ def test_localize_py_refuses_an_image_over_a_limit_from_its_header(gallery, tmp_
     with pytest.raises(QueryError, match=r"a fov=0.5 view 64 columns wide.*46,080 columns"):
         localize(compose_localize(ckpt, folder, small, tmp_path / "out2", "fov=0.5"))
     assert decoded == []
+
+
+def test_an_image_its_exif_orientation_turns_is_held_to_the_limits_as_decoded(gallery, tmp_path):  # noqa: F811
+    """A PNG whose EXIF orientation turns it as it is decoded: its header (64 wide, 5,000 high) is within the limits
+    at fov=90, the decoded image (5,000 wide) is not, and is refused naming the file, not handed to OpenCV."""
+    from PIL import Image
+
+    from geoloc.apps.localize.command import localize
+
+    _, ckpt, folder = gallery
+    turned = tmp_path / "turned.png"
+    exif = Image.Exif()
+    exif[0x0112] = 6  # Orientation: rotate 90° clockwise to display
+    Image.fromarray(np.zeros((5_000, 64, 3), np.uint8)).save(turned, exif=exif.tobytes())
+    assert read_street(turned).shape == (64, 5_000, 3)
+    with pytest.raises(QueryError, match=rf"^{turned}, a fov=90 view 5,000 columns wide, is placed on a 360° canvas "
+                                         r"of 20,000 columns .*\(max_canvas_side\)"):
+        localize(compose_localize(ckpt, folder, turned, tmp_path / "out", "fov=90", "heading=0"))
 
 
 def test_a_bad_device_names_the_valid_ones_before_the_checkpoint_is_read(capsys):

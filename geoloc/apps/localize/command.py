@@ -5,22 +5,26 @@ The outputs never touch the inputs or another run: `out=` may not be a folder th
 `<name>.png` would replace an input, and be read as one by the next run on that folder); each image's figure is
 named after its whole file name (`a.jpg.png`, `a.png.png`), so two images never share one; and the run holds the
 lock of its `out=` folder (geoloc/launch/rundir.py) while it writes, so a second localize.py, or a training, cannot
-write there at the same time. Every image's header is checked (its size against the limits and the gallery's query
-view) before the first is answered, so a folder holding an image the query cannot take is refused, naming that
-file, before any work.
+write there at the same time.
+
+The keys are parsed once, here, into a LocalizeConfig and the QuerySettings of every image (`parse`), which the
+localizer makes its own once (`Localizer.settings`: the default heading, abstain, refine); nothing below parses them
+again. Every image's header is checked (its size against the limits and the gallery's query view) before the first
+is answered, so a folder holding an image the query cannot take is refused, naming that file, before any work.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from geoloc.apps.localize.localizer import Localizer, check_street, read_street
-from geoloc.apps.query import SETTINGS, QueryError, QueryLimits, QuerySettings, check_settings, check_topk
+from geoloc.apps.localize.localizer import Localizer
+from geoloc.apps.query import SETTINGS, QueryError, QueryLimits, QuerySettings, check_settings, image_size
 from geoloc.config import ConfigError, checked
+from geoloc.data.io import read_rgb
 from geoloc.launch.run_log import run_log
 from geoloc.launch.rundir import claimed
 
@@ -42,9 +46,9 @@ class LocalizeConfig(QueryLimits, QuerySettings):
 
 
 def images_of(target: Path) -> list[Path]:
-    """The image itself, or a folder's images (sorted by name)."""
+    """The image itself, or a folder's image files (sorted by name)."""
     if target.is_dir():
-        found = sorted(p for p in target.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        found = sorted(p for p in target.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
         if not found:
             raise FileNotFoundError(f"image={target} is a folder without .jpg/.jpeg/.png files")
         return found
@@ -69,15 +73,15 @@ def refuse_out_holding_inputs(out: Path, images: list[Path]) -> None:
 
 
 def parse(section: DictConfig) -> tuple[LocalizeConfig, QuerySettings]:
-    """localize.py's keys, checked once: the query settings first, as given (fov=abc names fov, as the service
-    names its form fields), then every key against LocalizeConfig, then topk against max_topk."""
+    """localize.py's keys, checked once: all but the query's settings against LocalizeConfig, then the settings as
+    given, as the service's form fields are (fov=abc names fov), topk within max_topk."""
+    cfg = checked(OmegaConf.masked_copy(section, [key for key in section if key not in SETTINGS]), LocalizeConfig,
+                  "localize.py")
     try:
-        query = check_settings(**{key: section.get(key) for key in SETTINGS})
-        cfg = checked(OmegaConf.merge(section, vars(query)), LocalizeConfig, "localize.py")
-        check_topk(query.topk, cfg.max_topk)
+        query = check_settings(**{key: section.get(key) for key in SETTINGS}, max_topk=cfg.max_topk)
     except QueryError as err:
         raise ConfigError(f"localize.py: {err}") from None
-    return cfg, query
+    return replace(cfg, **vars(query)), query
 
 
 def localize(section: DictConfig) -> list[dict]:
@@ -96,11 +100,11 @@ def localize(section: DictConfig) -> list[dict]:
         except QueryError as err:
             raise ConfigError(f"localize.py: {err}") from None
         for path in images:  # every header before the first answer: an image the query cannot take stops no run midway
-            check_street(path, lambda width, height: localizer.check(width, height, query, name=str(path)))
+            localizer.check(*image_size(path.read_bytes(), str(path))[:2], query, name=str(path))
         with open(out / "localize.jsonl", "a") as lines:
             for path in images:
-                image = read_street(path)
-                result = localizer.localize(image, query, path=path)  # which checks the decoded image's size
+                image = read_rgb(path)
+                result = localizer.localize(image, query, path=path)
                 if cfg.picture:
                     from geoloc.apps.localize.picture import localization_figure
 

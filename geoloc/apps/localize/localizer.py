@@ -29,12 +29,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geoloc.apps.query import (SEARCH, QueryError, QueryLimits, QuerySettings, check_headings, check_settings,
-                                        check_size, image_size)
+from geoloc.apps.query import SEARCH, QueryError, QueryLimits, QuerySettings, check_headings, check_settings, check_size
 from geoloc.config import ConfigError
-from geoloc.data.validate import decode_rgb
 from geoloc.data.geo import distance_m, offset_to_latlon
-from geoloc.data.io import read_rgb
 from geoloc.data.relevance import Relevance
 from geoloc.eval.calibration import Calibrator, retrieval_features
 from geoloc.eval.candidates import merge_headings, rank_candidates
@@ -123,7 +120,8 @@ class Localizer:
 
     def check(self, width: int, height: int, query: QuerySettings, name: str = "the image") -> None:
         """QueryError (413) naming the limit when a W×H image of this query (as `settings` gives it) is over the
-        limits; run on an image's header, before anything is decoded (query.py)."""
+        limits: a door runs it on an image's header, before anything is decoded, and `localize` on the array
+        (query.py)."""
         check_size(name, width, height, query.fov, self.encoder.canvas_shape(height, width, query.fov, self.view),
                    self.limits)
 
@@ -134,12 +132,13 @@ class Localizer:
         return self.settings(check_settings(**given, max_topk=self.limits.max_topk))
 
     def settings(self, query: QuerySettings) -> QuerySettings:
-        """The query as this checkpoint and gallery answer it: `query` as its door parsed it (check_settings); one
-        without a heading takes `default_heading`, and abstain is refused where the answer's confidence does not
-        hold (QueryError)."""
+        """The query as this checkpoint and gallery answer it, once for all its images: `query` as its door parsed
+        it (check_settings); one without a heading takes `default_heading`, refine says whether the answers are
+        refined (`refines`), and abstain is refused where the answer's confidence does not hold (QueryError)."""
         query = dataclasses.replace(query)  # the caller's own stays as it gave it
         if query.heading is None:  # not given: as the checkpoint was trained
             query.heading = self.default_heading
+        query.refine = query.refine and self.refines(query.fov)
         if query.abstain is not None and not self.calibrated_for(query):
             info = self.calibration_info()
             held = (f"its confidence is calibrated for {info['condition']}" if info["calibrated"] else
@@ -153,18 +152,21 @@ class Localizer:
     def localize(self, image: np.ndarray, query: QuerySettings | None = None, *, name: str | None = None,
                  path: Path | None = None, deadline: float | None = None, **given) -> LocalizationResult:
         """image: H×W×3 uint8 RGB, a street panorama (fov 360; a full sphere when the gallery's queries are) or a
-        photo covering `fov` degrees of bearing, horizon band only. query: the settings as `settings` gives them;
-        left out, the settings `given` (as QuerySettings names them: fov, topk, heading, heading_prior, abstain,
-        refine) are parsed by `parse`. heading: its bearing when known (degrees clockwise from north); "search" searches
-        `heading_steps` candidates. path: the file, to find the image among the gallery split's queries (its true
-        position then comes with the answer). deadline: a time.monotonic() past which the search stops with
-        QueryError (503) instead of encoding its next candidates."""
+        photo covering `fov` degrees of bearing, horizon band only. query: the settings as `settings` gives them,
+        trusted; left out, the settings `given` (as QuerySettings names them: fov, topk, heading, heading_prior,
+        abstain, refine) are parsed by `parse`. heading: its bearing when known (degrees clockwise from north);
+        "search" searches `heading_steps` candidates. path: the file, to find the image among the gallery split's
+        queries (its true position then comes with the answer). deadline: a time.monotonic() past which the search
+        stops with QueryError (503) instead of encoding its next candidates."""
         if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise ValueError(f"image must be an H×W×3 uint8 RGB array, got {getattr(image, 'shape', type(image))} "
                              f"{getattr(image, 'dtype', '')}")
         if query is None:
             query = self.parse(**given)
-        self.check(image.shape[1], image.shape[0], query, name or str(path or "the image"))  # the decoded size
+        # the array's own size: its header, which a door checks, may have given another (an EXIF orientation turns
+        # an image as it is decoded), and an array given here has none
+        self.check(image.shape[1], image.shape[0], query, name or str(path or "the image"))
+        calibrated = self.calibrated_for(query)
         given = None if query.heading == SEARCH else query.heading
         if query.heading_prior:
             given = headings_around(query.heading, query.heading_prior, self.heading_steps)
@@ -177,7 +179,7 @@ class Localizer:
         merged = self._merge(scores, rows, headings)
         best = merged[: query.topk]
         confidence = None
-        if self.calibrated_for(query):
+        if calibrated:
             features = retrieval_features([[hit["score"] for hit in merged[:2]]])
             confidence = float(self.calibrator.probability(features)[0])
         source = "search" if query.heading == SEARCH else "prior" if query.heading_prior else "given"
@@ -185,9 +187,9 @@ class Localizer:
                                     heading_deg=best[0]["heading_deg"], heading_source=source,
                                     position=self._position(best[0]["row"]), topk=best, positions=self.places.kind,
                                     truth=self._truth(path, best), confidence=confidence,
-                                    calibrated=confidence is not None,
+                                    calibrated=calibrated,
                                     abstained=None if query.abstain is None else confidence < query.abstain)
-        if query.refine and self.refines(query.fov):
+        if query.refine:
             self._refine(answer, image)
         return answer
 
@@ -203,7 +205,7 @@ class Localizer:
         the refiner takes them (CrossViewEncoder.refine), so the memory does not grow with topk."""
         query = self.encoder.refine_query(image, answer.heading_deg, view=self.view)
         rows = [hit["row"] for hit in answer.topk]
-        out = self.encoder.refine(query, lambda i: _tile(self.places.root, answer.topk[i]["path"]),
+        out = self.encoder.refine(query, lambda i: self.places.tile_image(answer.topk[i]["path"]),
                                   self.places.reference_extent_m[rows])
         if out is None:
             return
@@ -293,30 +295,3 @@ def _tile_pixel(east: float, north: float, size_px, extent_m) -> dict:
     row = height / 2 - float(north) * height / float(extent_h)
     col = width / 2 + float(east) * width / float(extent_w)
     return {"tile_px": [row, col], "tile_size_px": [int(height), int(width)]}
-
-
-def _tile(root: Path, path: str) -> np.ndarray | None:
-    """A gallery tile's image, or None when it is not there (a gallery moved away from its images)."""
-    try:
-        return read_rgb(Path(root) / path)
-    except (OSError, ValueError):
-        return None
-
-
-def check_street(path: Path, check=None) -> bytes:
-    """An image file's bytes, after check(width, height), e.g. a Localizer's `check`, has run on its header: a
-    missing file, a non-image or an image the query cannot take is refused, naming the file, before any pixel is
-    decoded."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image not found: {path}")
-    data = path.read_bytes()
-    if check is not None:
-        check(*image_size(data, str(path))[:2])
-    return data
-
-
-def read_street(path: Path, check=None) -> np.ndarray:
-    """An image file as H×W×3 uint8 RGB (a clear error for a missing, truncated or non-image file), checked first
-    as check_street checks it."""
-    return decode_rgb(check_street(path, check), Path(path))

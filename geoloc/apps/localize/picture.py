@@ -19,7 +19,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from geoloc.apps.localize.localizer import _tile  # noqa: E402
 from geoloc.data.geo import latlon_to_offset  # noqa: E402
 from geoloc.gallery import POSITION_KEYS, LocalizationResult  # noqa: E402
 
@@ -105,7 +104,7 @@ def localization_figure(answer: LocalizationResult, image: np.ndarray, places, o
     ax.axis("off")
     for i, hit in enumerate(topk):
         ax = fig.add_subplot(grid[1, i])
-        tile = _tile(places.root, hit["path"])
+        tile = places.tile_image(hit["path"])
         if tile is not None:
             ax.imshow(tile)
             if i == 0 and answer.probability_map is not None and "refined_position" in hit:

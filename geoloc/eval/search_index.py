@@ -60,6 +60,10 @@ TRAIN_POINTS = 200_000  # the most vectors the quantisers train on (a seeded sam
 KINDS = ("flat", "ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "ivfpq_disk", "hnsw")
 PQ_KINDS = ("ivfpq", "pq_refine", "ivfpq_refine", "pq_sq8", "ivfpq_disk")  # their sub-quantisers must divide dim
 IVF_KINDS = ("ivfpq", "ivfpq_refine", "ivfpq_disk")  # inverted lists: nlist trained, nprobe searched
+# Their inverted lists hold 4-bit codes in blocks of 32 rows. FAISS 1.15's merge_from corrupts the heap joining such
+# lists of 1M rows (D 512, m 64: an abort in malloc), so a merge adds the other's exact rows again instead; the
+# codes are the same, as the codebook encodes the same vectors (ivfpq_disk: its float16 rows, which `add` encodes).
+FAST_SCAN_IVF_KINDS = ("ivfpq_refine", "ivfpq_disk")
 REFINE_KINDS = ("pq_refine", "ivfpq_refine", "pq_sq8")  # IndexRefine: k_factor * k candidates re-ranked
 
 
@@ -269,9 +273,10 @@ class GalleryIndex:
                 self.train(x)
             for s in range(0, x.shape[0], _ADD_BLOCK):  # IVF-PQ holds a residual per added row: add in blocks
                 block = np.ascontiguousarray(x[s:s + _ADD_BLOCK].cpu().numpy(), dtype=np.float32)
-                self._index.add(block)
-                if self._half is not None:
+                if self._half is not None:  # the codes of the rows as kept: a merge encodes them again alike
+                    block = block.astype(np.float16).astype(np.float32)
                     self._half.append(block)
+                self._index.add(block)
             return self
         if self._device is None:
             self._device = x.device
@@ -315,7 +320,11 @@ class GalleryIndex:
         other._writable("merge (FAISS empties it) from")
         faiss = import_faiss()
         target, source = faiss.downcast_index(self._index), faiss.downcast_index(other._index)
-        if self.kind in REFINE_KINDS:  # IndexRefine has no merge_from: merge its two parts, then count the rows
+        if self.kind in FAST_SCAN_IVF_KINDS:  # encoded again from the exact rows the other holds: see above
+            for block in _blocks_of(other):
+                self._index.add(block)
+            source.reset()
+        elif self.kind in REFINE_KINDS:  # IndexRefine has no merge_from: merge its two parts, then count the rows
             for part in ("base_index", "refine_index"):
                 _merge_from(faiss, getattr(target, part), getattr(source, part))
             target.ntotal += source.ntotal
@@ -441,6 +450,17 @@ class GalleryIndex:
         except Exception as err:  # a record without its keys, a FAISS blob cut inside the archive
             raise ValueError(f"the gallery index {path} is corrupt ({_first_line(err)})") from err
         return index
+
+
+def _blocks_of(index: GalleryIndex):
+    """The rows a fast-scan IVF index was encoded from, block by block as float32: ivfpq_disk's float16 rows,
+    ivfpq_refine's refinement vectors."""
+    for s in range(0, len(index), _ADD_BLOCK):
+        stop = min(s + _ADD_BLOCK, len(index))
+        if index._half is not None:
+            yield index._half.gather(np.arange(s, stop))
+        else:
+            yield import_faiss().downcast_index(index._index).refine_index.reconstruct_n(s, stop - s)
 
 
 def _merge_from(faiss, target, source) -> None:

@@ -33,7 +33,8 @@ of either backend are ordered best first, the lower row first among equal scores
 A flat index gives back its stored vectors (`vectors`), so a saved gallery can be scored exactly.
 
 Built in parts: `trained_empty` gives an index's trained, empty copy (the codebook every part is filled from), and
-`merge` appends other parts' rows with FAISS's own ``merge_from`` (their codes are copied, nothing is re-encoded).
+`merge` appends other parts' rows with FAISS's own ``merge_from`` (their codes are copied, nothing is re-encoded),
+except the fast-scan IVF kinds', whose exact rows are added again (FAST_SCAN_IVF_KINDS: the same codes).
 A FAISS index is saved with ``faiss.write_index`` into a file beside the record and read back memory-mapped
 (``IO_FLAG_MMAP_IFC``), so neither saving nor loading copies it whole into memory.
 """
@@ -307,7 +308,7 @@ class GalleryIndex:
 
     def merge(self, other: "GalleryIndex") -> "GalleryIndex":
         """Append `other`'s rows (their row numbers continue from ``len(self)``), moving their stored codes with
-        FAISS's ``merge_from``, which leaves `other` empty: both must hold the same kind, built from the same
+        FAISS's ``merge_from`` (the fast-scan IVF kinds: encoding their exact rows again), which leaves `other` empty: both must hold the same kind, built from the same
         codebook (`trained_empty`), and neither may be memory-mapped."""
         if (other.backend, other.kind, other.dim) != (self.backend, self.kind, self.dim):
             raise ValueError(f"cannot merge a {other.backend} {other.kind} index of dim {other.dim} into a "

@@ -9,7 +9,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.eval import GalleryIndex
 from geoloc.gallery.index_settings import GalleryConfig, build_index
-from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
+from helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 faiss = pytest.importorskip("faiss")
 

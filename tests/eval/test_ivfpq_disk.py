@@ -8,7 +8,7 @@ import torch
 
 from geoloc.eval import GalleryIndex
 from geoloc.eval.half_vectors import HalfVectors
-from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
+from helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 faiss = pytest.importorskip("faiss")
 
@@ -130,7 +130,7 @@ def test_a_saved_ivfpq_disk_gallery_is_refused_to_other_weights_a_reordered_spli
         monkeypatch, tmp_path):
     from geoloc.config import ConfigError
     from geoloc.gallery import open_gallery
-    from tests.helpers.gallery_runs import META, gallery_evaluate, pairs_split
+    from helpers.gallery_runs import META, gallery_evaluate, pairs_split
 
     rng = np.random.default_rng(0)
     reference = torch.from_numpy(unit(rng.standard_normal((120, DIM)).astype(np.float32)))

@@ -1,5 +1,5 @@
 """FAISS on one OpenMP thread for a test module: a parallel HNSW build is not reproducible, and OpenMP on a busy
-shared CPU is slow. `from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401` makes it autouse."""
+shared CPU is slow. `from helpers.faiss_threads import one_faiss_thread  # noqa: F401` makes it autouse."""
 
 from __future__ import annotations
 

@@ -15,8 +15,8 @@ from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval import GalleryIndex
 from geoloc.gallery import append_galleries, merge_shards, open_gallery
 from geoloc.gallery.places import reference_paths_sha256
-from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
-from tests.helpers.gallery_runs import META, gallery_evaluate
+from helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
+from helpers.gallery_runs import META, gallery_evaluate
 
 DIM = 32
 KNOBS = {"pq_sq8": dict(coarse_m=8, k_factor=8), "ivfpq_disk": dict(m=8, k_factor=8)}

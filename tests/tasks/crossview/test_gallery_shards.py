@@ -17,7 +17,7 @@ from geoloc.gallery import shards as gallery_shards
 from geoloc.gallery.shards import merge_shards
 
 from helpers.gallery_runs import META, gallery_evaluate, pairs_split
-from tests.helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
+from helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 N, DIM = 120, 32
 KNOBS = dict(coarse_m=8, k_factor=8)

@@ -9,6 +9,7 @@ import torch
 from geoloc.config import ConfigError
 from geoloc.eval import GalleryIndex
 from geoloc.gallery.index_settings import GalleryConfig, build_index
+from helpers.descriptor_data import low_rank_pairs
 from helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 faiss = pytest.importorskip("faiss")
@@ -25,12 +26,7 @@ def unit(x):
 @pytest.fixture(scope="module")
 def easy():
     """5,000 references of intrinsic dimension 8 in 32-D; query i = reference i plus a little noise."""
-    rng = np.random.default_rng(0)
-    w = rng.standard_normal((8, DIM)).astype(np.float32)
-    z = rng.standard_normal((5000, 8)).astype(np.float32)
-    reference = unit(z @ w + 0.05 * rng.standard_normal((5000, DIM)).astype(np.float32))
-    query = unit((z[:300] + 0.2 * rng.standard_normal((300, 8)).astype(np.float32)) @ w)
-    return query.astype(np.float32), reference.astype(np.float32)
+    return low_rank_pairs(5000, 300, DIM, noise=0.2, seed=0)
 
 
 def exact_top(query, reference, k):

@@ -8,6 +8,7 @@ import torch
 
 from geoloc.eval import GalleryIndex
 from geoloc.eval.half_vectors import HalfVectors
+from helpers.descriptor_data import low_rank_pairs
 from helpers.faiss_threads import one_faiss_thread  # noqa: F401  (autouse)
 
 faiss = pytest.importorskip("faiss")
@@ -22,12 +23,7 @@ def unit(x):
 @pytest.fixture(scope="module")
 def data():
     """4,000 references of intrinsic dimension 8 in 32-D; query i = reference i plus noise."""
-    rng = np.random.default_rng(1)
-    w = rng.standard_normal((8, DIM)).astype(np.float32)
-    z = rng.standard_normal((4000, 8)).astype(np.float32)
-    reference = unit(z @ w + 0.05 * rng.standard_normal((4000, DIM)).astype(np.float32))
-    query = unit((z[:200] + 0.3 * rng.standard_normal((200, 8)).astype(np.float32)) @ w)
-    return query, reference
+    return low_rank_pairs(4000, 200, DIM, noise=0.3, seed=1)
 
 
 def brute_force(query, reference, k):

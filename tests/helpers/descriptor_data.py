@@ -31,3 +31,20 @@ def vigor_like_data(q, n, d=8, seed=0):
     near = semi[::3, 0]  # every third query's first semi-positive near it too (overlapping VIGOR tiles)
     reference[near[near >= 0]] = F.normalize(reference[near[near >= 0]] + 2.0 * query[::3][near >= 0], dim=1)
     return query, reference, positives, semi
+
+
+def low_rank_pairs(n_reference: int, n_query: int, dim: int, noise: float, seed: int, rank: int = 8):
+    """Unit float32 numpy descriptors of intrinsic dimension `rank` in `dim` (reference = z W plus a little
+    isotropic noise); query i is reference i's latent code plus `noise`, mapped by the same W. What the FAISS gallery
+    kinds are tested on: clustered, as learned descriptors are, so IVF and PQ have structure to use."""
+    import numpy as np
+
+    def unit(x):
+        return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal((rank, dim)).astype(np.float32)
+    z = rng.standard_normal((n_reference, rank)).astype(np.float32)
+    reference = unit(z @ w + 0.05 * rng.standard_normal((n_reference, dim)).astype(np.float32))
+    query = unit((z[:n_query] + noise * rng.standard_normal((n_query, rank)).astype(np.float32)) @ w)
+    return query, reference

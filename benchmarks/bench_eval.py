@@ -250,7 +250,11 @@ def run_approximate(args, kind, query, ref):
     index = GalleryIndex(ref.shape[1], backend="faiss", kind=kind, nlist=args.nlist, m=args.m, nbits=args.nbits,
                          coarse_m=args.coarse_m, k_factor=IVF_K_FACTOR, hnsw_m=args.hnsw_m,
                          ef_construction=args.ef_construction)
-    build_s = timed(lambda: (index.train(ref, max_points=args.train_points), index.add(ref)) and None)[1]
+    def build():
+        index.train(ref, max_points=args.train_points)
+        index.add(ref)
+
+    build_s = timed(build)[1]
     disk = {}
     if kind == "ivfpq_disk":  # searched as a saved gallery is: the codes in memory, the float16 rows mapped
         folder = saved(index, args)

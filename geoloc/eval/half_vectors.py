@@ -69,6 +69,12 @@ class HalfVectors:
             out[picked] = self._blocks[b][unique[picked] - start]
         return out[back.reshape(-1)]
 
+    def slices(self, size: int):
+        """The rows in order, at most `size` at a time, as float32 (a mapped block read a slice at a time)."""
+        for block in self._blocks:
+            for s in range(0, len(block), size):
+                yield np.asarray(block[s:s + size], dtype=np.float32)
+
     def write(self, stem: Path) -> list[list]:
         """Write the rows as files `<stem>.<i>.f16` beside `stem`, each through a temporary file renamed when it is
         whole; returns [[file name, rows], ...] in row order, which `open` takes back."""

@@ -308,8 +308,9 @@ class GalleryIndex:
 
     def merge(self, other: "GalleryIndex") -> "GalleryIndex":
         """Append `other`'s rows (their row numbers continue from ``len(self)``), moving their stored codes with
-        FAISS's ``merge_from`` (the fast-scan IVF kinds: encoding their exact rows again), which leaves `other` empty: both must hold the same kind, built from the same
-        codebook (`trained_empty`), and neither may be memory-mapped."""
+        FAISS's ``merge_from`` (the fast-scan IVF kinds: encoding their exact rows again), which leaves `other`
+        empty: both must hold the same kind, built from the same codebook (`trained_empty`), and neither may be
+        memory-mapped."""
         if (other.backend, other.kind, other.dim) != (self.backend, self.kind, self.dim):
             raise ValueError(f"cannot merge a {other.backend} {other.kind} index of dim {other.dim} into a "
                              f"{self.backend} {self.kind} index of dim {self.dim}")
@@ -456,12 +457,12 @@ class GalleryIndex:
 def _blocks_of(index: GalleryIndex):
     """The rows a fast-scan IVF index was encoded from, block by block as float32: ivfpq_disk's float16 rows,
     ivfpq_refine's refinement vectors."""
+    if index._half is not None:
+        yield from index._half.slices(_ADD_BLOCK)
+        return
+    refine = import_faiss().downcast_index(index._index).refine_index
     for s in range(0, len(index), _ADD_BLOCK):
-        stop = min(s + _ADD_BLOCK, len(index))
-        if index._half is not None:
-            yield index._half.gather(np.arange(s, stop))
-        else:
-            yield import_faiss().downcast_index(index._index).refine_index.reconstruct_n(s, stop - s)
+        yield refine.reconstruct_n(s, min(_ADD_BLOCK, len(index) - s))
 
 
 def _merge_from(faiss, target, source) -> None:

@@ -25,11 +25,11 @@ from geoloc.eval.search_index import GalleryIndex
 from geoloc.gallery.confidence import across_jobs
 from geoloc.gallery.folder import INDEX, read_calibration, read_info, write_calibration, write_gallery_folder
 from geoloc.gallery.places import rebased, reference_paths_sha256
-from geoloc.gallery.shards import check_index_files, shard_index
+from geoloc.gallery.shards import SHARED, check_index_files, shard_index
 
-# what a part shares with the gallery it is appended to: the weights, the descriptors' view and places, the index
-APPENDABLE = ("model_fingerprint", "query_view", "positions", "dim", "backend", "kind", "nlist", "m", "nbits",
-              "coarse_m", "hnsw_m", "ef_construction", "codebook_sha256")
+# what a part shares with the gallery it is appended to: what the shards of one gallery share (the weights, the
+# descriptors' view and places, the index and its codebook), less the split, which a part adds anew
+APPENDABLE = tuple(k for k in SHARED if k not in ("dataset", "split", "root", "references_sha256"))
 
 
 def read_parts(gallery: Path, parts: list[Path]) -> tuple[dict, list[tuple[Path, dict]]]:

@@ -7,8 +7,8 @@
   places.split_record); the index `kind` and knobs; the `reference_spread` measured when it was built;
 - references.jsonl, queries.jsonl: the places (places.py);
 - calibration.json: the answers' confidence (confidence.py), or why there is none.
-A FAISS index's codes lie in gallery.faiss beside gallery.pt, an ivfpq_disk index's float16 rows in gallery.f16
-(GalleryIndex.save).
+A FAISS index's codes lie in gallery.faiss beside gallery.pt, an ivfpq_disk index's float16 rows in
+gallery.<i>.f16 (GalleryIndex.save).
 
 A part of a gallery built across jobs (gallery.py `build_part`) is such a folder too, with a `part` record in
 gallery.json: a codebook (`role: codebook`, no rows, its index file's `codebook_sha256`) or a shard (`role: shard`,

@@ -157,10 +157,11 @@ def build_part(task, engine, data: EvalData, batch_size: int, cfg: GalleryConfig
         index = codebook.index.trained_empty()
     else:
         index = empty_index(cfg, split.num_references, dim)
-    if not cfg.codebook and not cfg.train_only and not index.is_trained:
-        raise ConfigError(f"gallery.kind={cfg.kind} builds {index.kind}, which trains a codebook, and each shard "
-                          f"must be filled from the same one: build it once with gallery.train_only=true "
-                          f"gallery.save=CODEBOOK_DIR, then give gallery.codebook=CODEBOOK_DIR to every shard job")
+        if not cfg.train_only and not index.is_trained:
+            raise ConfigError(f"gallery.kind={cfg.kind} builds {index.kind}, which trains a codebook, and each shard "
+                              f"must be filled from the same one: build it once with gallery.train_only=true "
+                              f"gallery.save=CODEBOOK_DIR, then give gallery.codebook=CODEBOOK_DIR to every shard "
+                              f"job")
     if cfg.train_only:
         if index.is_trained:
             raise ConfigError(f"gallery.kind={cfg.kind} builds {index.kind}, which trains nothing: build the shards "

@@ -201,3 +201,54 @@ def test_refinement_estimates_and_nll_from_a_known_map():
     assert near < far
     mass = out.mass_within(2.0, torch.tensor([[16.0, 16.0]]))  # 1 m per lattice step: a disc of radius 2
     assert 0.5 < mass.item() < 1.0
+
+
+def brute_force_blur(prob: np.ndarray, sigma: float) -> np.ndarray:
+    """Each lattice point's Gaussian-weighted sum of the probabilities within 3 sigma (on the map only), weights
+    normalised over the whole kernel, by loops."""
+    rows, cols = prob.shape
+    radius = int(np.ceil(3 * sigma))
+    offsets = np.arange(-radius, radius + 1)
+    weight = np.exp(-0.5 * (offsets / sigma) ** 2)
+    weight /= weight.sum()
+    out = np.zeros_like(prob)
+    for i in range(rows):
+        for j in range(cols):
+            for a, wa in zip(offsets, weight):
+                for b, wb in zip(offsets, weight):
+                    if 0 <= i + a < rows and 0 <= j + b < cols:
+                        out[i, j] += wa * wb * prob[i + a, j + b]
+    return out
+
+
+def test_peak_smoothing_answers_where_the_mass_is_not_the_narrow_spike():
+    """A narrow spike (one lattice point, 0.2 of the mass) beside a broad bump (0.8): the raw peak is the spike,
+    the smoothed answer the bump's centre, at the lattice point a brute-force blur puts highest; the mass within
+    a radius is counted around the smoothed answer."""
+    rows = cols = 33
+    ys, xs = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    bump = np.exp(-((ys - 20.0) ** 2 + (xs - 9.0) ** 2) / (2 * 3.0 ** 2))
+    prob = 0.8 * bump / bump.sum()
+    prob[6, 26] += 0.2
+    out = Refinement(torch.from_numpy(np.log(prob))[None, None].float(), torch.zeros(1))
+    raw = out.position()[0] * (rows - 1)
+    assert torch.allclose(raw, torch.tensor([6.0, 26.0]), atol=0.1)
+    smoothing = 2.0 / (rows - 1)  # sigma of two lattice steps
+    smoothed = out.position(smoothing)[0] * (rows - 1)
+    expected = np.unravel_index(brute_force_blur(prob, 2.0).argmax(), prob.shape)
+    assert tuple(torch.round(smoothed).int().tolist()) == tuple(int(v) for v in expected) == (20, 9)
+    extent = torch.tensor([[32.0, 32.0]])  # 1 m a lattice step
+    assert out.mass_within(6.0, extent, smoothing).item() > 0.5 > out.mass_within(6.0, extent).item()
+
+
+def test_peak_smoothing_is_the_raw_peak_for_a_smooth_map_and_never_leaves_the_tile():
+    """On one Gaussian bump the smoothed peak is the raw one (sub-lattice, within 0.1 step); a bump at the corner
+    stays on the tile."""
+    rows = cols = 17
+    ys, xs = torch.meshgrid(torch.arange(rows).float(), torch.arange(cols).float(), indexing="ij")
+    for peak in ((5.3, 11.6), (0.0, 16.0)):
+        logit = -((ys - peak[0]) ** 2 + (xs - peak[1]) ** 2) / 2.0
+        out = Refinement(F.log_softmax(logit.flatten(), 0).reshape(1, 1, rows, cols), torch.zeros(1))
+        got = out.position(0.1)[0]
+        assert ((got >= 0) & (got <= 1)).all()
+        assert torch.allclose(got * (rows - 1), torch.tensor(peak), atol=0.1 if peak[0] else 1.0), (peak, got)

@@ -15,6 +15,7 @@ so an app encodes a gallery's tiles once and matches each query against its top-
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -41,10 +42,15 @@ class Refinement:
         """B x R x C: log P(position), heading marginalised."""
         return torch.logsumexp(self.log_prob, dim=1)
 
-    def position(self) -> torch.Tensor:
+    def position(self, smoothing: float = 0.0) -> torch.Tensor:
         """B x 2 (row, col) tile fractions of the most probable position, refined between lattice points by a
-        parabola through the log-probabilities of its neighbours on each axis."""
+        parabola through the log-probabilities of its neighbours on each axis. With `smoothing` > 0 the
+        probability is first blurred by a Gaussian whose sigma is that share of the tile's side: the answer is then
+        the point with the most probability around it, which a narrow spurious peak beside a broad true one does
+        not win (docs/localisation.md measures it)."""
         logp = self.position_log_prob
+        if smoothing > 0:
+            logp = _blurred(logp.exp(), smoothing).clamp_min(torch.finfo(logp.dtype).tiny).log()
         b, rows, cols = logp.shape
         best = logp.flatten(1).argmax(1)
         r, c = best // cols, best % cols
@@ -66,14 +72,14 @@ class Refinement:
             heading = heading + _vertex(left, mid, right) * 360.0 / k
         return heading % 360.0
 
-    def mass_within(self, radius: torch.Tensor | float, extent: torch.Tensor) -> torch.Tensor:
-        """(B,) the probability mass of the positions within `radius` metres of the estimate: the refiner's own
-        score of its answer (what a calibrator maps to P(error <= radius)). extent: B x 2 (height, width) metres the
-        tile covers."""
+    def mass_within(self, radius: torch.Tensor | float, extent: torch.Tensor, smoothing: float = 0.0) -> torch.Tensor:
+        """(B,) the probability mass of the positions within `radius` metres of the estimate (position(smoothing)):
+        the refiner's own score of its answer (what a calibrator maps to P(error <= radius)). extent: B x 2
+        (height, width) metres the tile covers."""
         prob = self.position_log_prob.exp()
         b, rows, cols = prob.shape
         extent = torch.as_tensor(extent, dtype=prob.dtype, device=prob.device).reshape(b, 2)
-        at = self.position() * (torch.tensor([rows - 1, cols - 1], device=prob.device))
+        at = self.position(smoothing) * (torch.tensor([rows - 1, cols - 1], device=prob.device))
         ys = torch.arange(rows, device=prob.device, dtype=prob.dtype)[None, :, None]
         xs = torch.arange(cols, device=prob.device, dtype=prob.dtype)[None, None, :]
         dy = (ys - at[:, 0, None, None]) * (extent[:, 0, None, None] / (rows - 1))
@@ -106,6 +112,21 @@ def _vertex(left, mid, right):
     denom = left - 2 * mid + right
     offset = 0.5 * (left - right) / torch.where(denom.abs() > 1e-12, denom, torch.full_like(denom, -1e-12))
     return torch.nan_to_num(offset, nan=0.0).clamp(-0.5, 0.5)
+
+
+def _blurred(prob: torch.Tensor, smoothing: float) -> torch.Tensor:
+    """B x R x C probabilities convolved with a Gaussian of sigma `smoothing` x (R - 1) rows and x (C - 1) columns
+    (separable, truncated at 3 sigma); what lies beyond the map counts as zero, so a point near the edge sums only
+    the mass on the tile."""
+    out = prob[:, None]
+    for axis, size in ((2, prob.shape[1]), (3, prob.shape[2])):
+        sigma = smoothing * (size - 1)
+        radius = int(math.ceil(3 * sigma))
+        x = torch.arange(-radius, radius + 1, dtype=prob.dtype, device=prob.device)
+        kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+        kernel = (kernel / kernel.sum()).reshape((1, 1, -1, 1) if axis == 2 else (1, 1, 1, -1))
+        out = F.conv2d(out, kernel, padding=(radius, 0) if axis == 2 else (0, radius))
+    return out[:, 0]
 
 
 def _parabola_peak(logp, batch, r, c, size, axis: int):

@@ -212,12 +212,13 @@ class CrossViewEncoder:
                     return None
                 inputs = torch.stack([self.refine_tile(image) for image in tiles])
                 found = matched(self.refiner.encode_reference(inputs.to(self.device)))
-                answer = {"offset_m": offset_m(found.position().cpu().double().numpy(), extent[part]),
+                smoothing = self.refine_config.peak_smoothing
+                answer = {"offset_m": offset_m(found.position(smoothing).cpu().double().numpy(), extent[part]),
                           "heading_offset_deg": (found.heading().cpu().numpy()
                                                  if self.refine_config.orientation_noise_deg > 0
                                                  else np.zeros(len(part))),
                           "mass": found.mass_within(radius_m, torch.as_tensor(
-                              extent[part], dtype=torch.float32, device=self.device)).cpu().numpy(),
+                              extent[part], dtype=torch.float32, device=self.device), smoothing).cpu().numpy(),
                           "maps": found.position_log_prob.exp().cpu().numpy(),
                           "tile_size_px": np.array([image.shape[:2] for image in tiles])}
                 for key, value in answer.items():

@@ -54,9 +54,12 @@ def refiner_condition(refiner, refine: RefineConfig) -> dict:
     is used: the refiner's own weights (their fingerprint: two refiners trained from one retrieval run share the
     gallery's retrieval weights, not these) and the RefineConfig keys that shape its test answers, beside the tile
     and the radius it counts."""
-    return {"tile": "holds the camera, anywhere in it", "radius_m": RADIUS_M,
-            "orientation_noise_deg": float(refine.orientation_noise_deg), "size": int(refine.size),
-            "query_extent_m": float(refine.query_extent_m), "refiner_fingerprint": weights_fingerprint(refiner)}
+    condition = {"tile": "holds the camera, anywhere in it", "radius_m": RADIUS_M,
+                 "orientation_noise_deg": float(refine.orientation_noise_deg), "size": int(refine.size),
+                 "query_extent_m": float(refine.query_extent_m), "refiner_fingerprint": weights_fingerprint(refiner)}
+    if refine.peak_smoothing:  # recorded where set, so the calibrations of galleries saved before it stay valid
+        condition["peak_smoothing"] = float(refine.peak_smoothing)
+    return condition
 
 
 def scored_refiner(record: dict | None, task, split, maps: dict, top1, run_dir: Path | None) -> dict:

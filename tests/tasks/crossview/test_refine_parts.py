@@ -34,16 +34,18 @@ def one_batch(encoder, query, tiles, extent, radius_m=5.0):
     scales = {} if scale is None else {"query_scale": scale}  # a plug-in may take no scale
     found = encoder.refiner.match(maps.expand(len(tiles), *maps.shape[1:]), references,
                                   encoder.refine_config.candidates(8), **scales)
-    return {"offset_m": offset_m(found.position().double().numpy(), extent),
+    smoothing = encoder.refine_config.peak_smoothing
+    return {"offset_m": offset_m(found.position(smoothing).double().numpy(), extent),
             "heading_offset_deg": found.heading().numpy(),
-            "mass": found.mass_within(radius_m, torch.as_tensor(extent, dtype=torch.float32)).numpy(),
+            "mass": found.mass_within(radius_m, torch.as_tensor(extent, dtype=torch.float32), smoothing).numpy(),
             "maps": found.position_log_prob.exp().numpy()}
 
 
 @pytest.mark.parametrize("scales", [1, 2])
 @torch.no_grad()
 def test_the_refiner_takes_the_tiles_in_parts_decoded_as_taken_with_the_one_batch_answer(scales):
-    encoder = encoder_of("refiner.orientation_noise_deg=180", "refiner.query_extent_m=60")
+    encoder = encoder_of("refiner.orientation_noise_deg=180", "refiner.query_extent_m=60",
+                         "refiner.peak_smoothing=0.1")
     rng = np.random.default_rng(0)
     tiles = [rng.integers(0, 255, (40 + k % 3, 40, 3), np.uint8) for k in range(11)]
     extent = np.array([[70.0, 70.0] if k % scales == 0 else [55.0, 55.0] for k in range(11)])  # 1 or 2 scales

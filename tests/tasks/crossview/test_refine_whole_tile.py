@@ -84,3 +84,36 @@ def test_query_scale_reaches_the_refiner_through_match():
     match(Spy(), RefineConfig(query_extent_m=72.0), torch.zeros(2, 1), torch.zeros(2, 1), torch.zeros(1),
           [[64.0, 64.0], [72.0, 72.0]])
     assert seen["query_scale"].tolist() == pytest.approx([72.0 / 64.0, 1.0])
+
+
+def spike_beside_bump(rows: int = 33) -> torch.Tensor:
+    """1 x 1 x rows x rows log-probabilities: 0.8 in a broad bump at lattice (20, 9), 0.2 on the one point (6, 26)."""
+    ys, xs = np.meshgrid(np.arange(rows), np.arange(rows), indexing="ij")
+    bump = np.exp(-((ys - 20.0) ** 2 + (xs - 9.0) ** 2) / (2 * 3.0 ** 2))
+    prob = 0.8 * bump / bump.sum()
+    prob[6, 26] += 0.2
+    return torch.from_numpy(np.log(prob)).float()[None, None]
+
+
+def test_the_evaluation_and_the_calibration_read_the_answer_with_the_configured_peak_smoothing():
+    from geoloc.models.refiners import Refinement
+    from geoloc.tasks.crossview.refine import refined
+    from geoloc.tasks.crossview.refine_confidence import refiner_condition
+
+    class Fixed(torch.nn.Module):
+        def match(self, query, reference, headings):
+            return Refinement(spike_beside_bump().expand(len(query), 1, 33, 33), torch.zeros(1))
+
+    split = two_query_split()
+    raw, _, raw_mass = refined(Fixed(), RefineConfig(), torch.zeros(2, 1), torch.zeros(4, 1), [0, 1], [0, 2],
+                               torch.zeros(1), split)
+    smoothed, _, mass = refined(Fixed(), RefineConfig(peak_smoothing=0.0625), torch.zeros(2, 1), torch.zeros(4, 1),
+                                [0, 1], [0, 2], torch.zeros(1), split)
+    assert np.allclose(raw.numpy() * 32, [[6, 26]] * 2, atol=0.1)
+    assert np.allclose(smoothed.numpy() * 32, [[20, 9]] * 2, atol=0.1)
+    assert (mass > raw_mass).all()  # the mass within 5 m is counted around the answer given
+    with pytest.raises(ValueError, match="peak_smoothing must be a share of the tile's side"):
+        RefineConfig(peak_smoothing=-0.1)
+    plain = refiner_condition(Fixed(), RefineConfig())
+    assert "peak_smoothing" not in plain  # galleries calibrated before the key stay valid for such refiners
+    assert refiner_condition(Fixed(), RefineConfig(peak_smoothing=0.05))["peak_smoothing"] == 0.05

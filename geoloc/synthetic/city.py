@@ -81,10 +81,16 @@ def render_tiles(cfg: SynthConfig, city: City, seed: int) -> Iterator[tuple[int,
             yield ix, iy, finish(rgb, city.aerial, r_noise)
 
 
+def standing_half_span(city: City) -> float:
+    """Metres: a panorama stands where |east| and |north| are at most this, between the outermost tile centres
+    (so four tiles hold it), less 0.1 m so that rounding it onto VIGOR's lat/lon grid keeps it there."""
+    return city.grid.half_span_m - 0.1
+
+
 def panorama_position(city: City, rng: np.random.Generator, tries: int = 400) -> tuple[float, float]:
     """(east, north) metres on a road (else on open ground) between the outermost tile centres, moved onto the
     6-decimal lat/lon grid of VIGOR's panorama names (at most 6 cm), so the name says exactly where it was taken."""
-    world, half = city.place.world, city.grid.half_span_m - 0.1  # the 0.1 m keeps the rounding inside
+    world, half = city.place.world, standing_half_span(city)
     best = None
     for _ in range(tries):
         e, n = rng.uniform(-half, half, 2)

@@ -192,6 +192,27 @@ def write_marker(root: Path, marker: dict, complete: bool) -> None:
     LY.write_bytes(root / MARKER, text.encode())
 
 
+def vigor_marker(root: Path, reader: str) -> dict:
+    """The marker of the complete synthetic vigor dataset at `root`, which `reader` (a tool, named in its refusals)
+    renders more of in the same world. Refused: no marker, one that is not JSON, a render of another layout or one
+    that did not finish, and a relit copy (relight.py), whose marker is its source's and whose one city is not."""
+    path = Path(root) / MARKER
+    if not path.is_file():
+        raise FileNotFoundError(f"{root} holds no {MARKER}: {reader} reads a synthetic vigor dataset that geoloc "
+                                "rendered (e.g. ~/.cache/geoloc/synthetic/vigor-vigor_medium-seed0)")
+    try:
+        marker = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}); render the dataset again into an empty folder") from err
+    if marker.get("layout") != "vigor" or not marker.get("complete") or "options" not in marker:
+        raise ValueError(f"{path}: {reader} needs a complete synthetic vigor dataset, found layout "
+                         f"{marker.get('layout')!r}, complete={marker.get('complete')}")
+    if "relit" in marker:
+        raise ValueError(f"{path}: {root} is itself relit; give {reader} the dataset it came from "
+                         f"({marker['relit']['source']})")
+    return marker
+
+
 def _jobs(layout: str, train: int, val: int) -> list[tuple[str, int, int]]:
     """(split, index within split, global number). cvusa/cvact numbers are 1-based; dynamic places 0-based."""
     first = 0 if layout == "dynamic" else 1

@@ -11,14 +11,13 @@ The other cities, the split files and the offsets are linked to the source, whic
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import replace
 from pathlib import Path
 
 from .city import CITY_NAMES, build_city
 from .world_config import SynthConfig, VigorOptions
-from .generate import MARKER, write_marker
+from .generate import MARKER, vigor_marker, write_marker
 from .vigor_layout import CROSS_AREA_FILE, write_panorama, write_tiles
 
 
@@ -28,7 +27,7 @@ def relight_city(source, out, city: str, sun_elevation: float | None = None, sun
     keeps the city's own). -> OUT."""
     _check_conditions(sun_elevation, sun_azimuth, season)
     source, out = Path(source).resolve(), Path(out)
-    marker = _vigor_marker(source)
+    marker = vigor_marker(source, "relight")
     if out.exists() and any(out.iterdir()):
         raise FileExistsError(f"{out} is not empty; relight writes a new dataset root, so give a new folder")
     opts = VigorOptions(**marker["options"])
@@ -75,21 +74,3 @@ def _check_conditions(sun_elevation, sun_azimuth, season) -> None:
     for name, (value, allowed, inside) in ranges.items():
         if value is not None and not (math.isfinite(value) and inside(value)):
             raise ValueError(f"{name} must be a number in {allowed}, got {value}; nothing was written")
-
-
-def _vigor_marker(source: Path) -> dict:
-    path = source / MARKER
-    if not path.is_file():
-        raise FileNotFoundError(f"{source} holds no {MARKER}: relight reads a synthetic vigor dataset that geoloc "
-                                "rendered (e.g. ~/.cache/geoloc/synthetic/vigor-vigor_medium-seed0)")
-    try:
-        marker = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON ({err}); render the dataset again into an empty folder") from err
-    if marker.get("layout") != "vigor" or not marker.get("complete") or "options" not in marker:
-        raise ValueError(f"{path}: relight needs a complete synthetic vigor dataset, found layout "
-                         f"{marker.get('layout')!r}, complete={marker.get('complete')}")
-    if "relit" in marker:
-        raise ValueError(f"{path}: {source} is itself relit; relight the dataset it came from "
-                         f"({marker['relit']['source']})")
-    return marker

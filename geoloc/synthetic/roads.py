@@ -115,7 +115,7 @@ def _crossings(world: World, roads: list[Road], line_w: float) -> None:
             if abs(np.dot(a.pts[-1] - a.pts[0], b.pts[-1] - b.pts[0])) > 0.95 * np.linalg.norm(
                     a.pts[-1] - a.pts[0]) * np.linalg.norm(b.pts[-1] - b.pts[0]):
                 continue  # parallel: they never meet
-            ia, ib = _closest(a.pts, b.pts)
+            ia, ib = closest_points(a.pts, b.pts)
             if np.linalg.norm(a.pts[ia] - b.pts[ib]) > 1.5 or np.abs(a.pts[ia]).max() > half + 10:
                 continue
             for road, (p, t, n), idx, other in ((a, frames[i], ia, b), (b, frames[j], ib, a)):
@@ -126,7 +126,7 @@ def _crossings(world: World, roads: list[Road], line_w: float) -> None:
     world.draw_polylines(segs, max(line_w, 0.5), ROADLINES, S.MARKING_WHITE)
 
 
-def _closest(a: np.ndarray, b: np.ndarray, stride: int = 8):
+def closest_points(a: np.ndarray, b: np.ndarray, stride: int = 8):
     """Indices of the closest pair of points of two polylines: coarse search, then a local refinement."""
     d = np.linalg.norm(a[::stride, None] - b[None, ::stride], axis=2)
     ia, ib = np.unravel_index(np.argmin(d), d.shape)

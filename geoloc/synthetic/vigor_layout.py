@@ -79,10 +79,15 @@ def write_panorama(cfg: SynthConfig, city: City, seed: int, split: str, k: int, 
     panoid = "".join(r_pos.choice(list(ID_CHARS), 22))
     lat, lon = offset_to_latlon(city.origin, east, north)
     name = f"{panoid},{lat:.6f},{lon:.6f},.jpg"
-    out = render_panorama(cfg, city, rngs, east, north)
-    LY.write_bytes(root / city.name / "panorama" / name,
-                   LY.encode(out["pano"], ".jpg", out["conditions"].jpeg_quality), atomic=False)
+    LY.write_bytes(root / city.name / "panorama" / name, panorama_jpeg(cfg, city, rngs, east, north), atomic=False)
     return split_line(city, name, east, north, cfg.aerial_size)
+
+
+def panorama_jpeg(cfg: SynthConfig, city: City, rngs: list, east: float, north: float) -> bytes:
+    """The JPEG file of the panorama at (east, north) (render_panorama), at the quality its conditions drew: every
+    street panorama of a vigor world, a split's or a route's (routes.py), is written through this."""
+    out = render_panorama(cfg, city, rngs, east, north)
+    return LY.encode(out["pano"], ".jpg", out["conditions"].jpeg_quality)
 
 
 def finish(root: Path, opts: VigorOptions, jobs: list, records: dict) -> None:

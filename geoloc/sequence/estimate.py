@@ -76,6 +76,10 @@ class FrameEstimate:
         spread = self.covariance + 1e-9 * np.eye(2)  # a degenerate cloud (all samples on one point) stays invertible
         return bool(d @ np.linalg.solve(spread, d) <= -2 * math.log(1 - level))
 
+    def ellipse_area_m2(self, level: float = 0.95) -> float:
+        """The area of the Gaussian `level` ellipse: pi * chi-square quantile * sqrt(det covariance)."""
+        return float(np.pi * -2 * math.log(1 - level) * math.sqrt(max(np.linalg.det(self.covariance), 0.0)))
+
     def contains(self, point, level: float = 0.95) -> bool:
         """Whether (2,) point lies in the highest-posterior-density region holding `level` of the posterior."""
         point = np.asarray(point, np.float64)[None]

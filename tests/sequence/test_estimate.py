@@ -44,6 +44,7 @@ def test_one_gaussian_region_is_its_circle():
             assert estimate.contains(point) is inside
             assert estimate.in_ellipse(point) is inside
     assert estimate.region_area_m2() == pytest.approx(np.pi * 5.991 * sigma ** 2, rel=0.1)
+    assert estimate.ellipse_area_m2() == pytest.approx(np.pi * 5.991 * sigma ** 2, rel=0.03)
     np.testing.assert_allclose(estimate.position, centre, atol=0.5)
 
 
@@ -55,6 +56,7 @@ def test_two_modes_leave_the_space_between_them_out():
     between = np.array([450.0, 500.0])
     assert estimate.in_ellipse(between) and not estimate.contains(between)
     assert estimate.contains([300.0, 500.0]) and estimate.contains([600.0, 500.0])
+    assert estimate.region_area_m2() < 0.2 * estimate.ellipse_area_m2()  # two discs of 95%: about 3,800 m²
     # the point estimate is the heavier mode, not the mean between them
     np.testing.assert_allclose(estimate.position, [300.0, 500.0], atol=1.0)
     assert estimate.heading_deg == pytest.approx(350.0)

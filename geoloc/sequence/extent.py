@@ -45,3 +45,30 @@ class GalleryExtent:
         p = np.asarray(points, np.float64)
         return ((p[..., 0] >= self.east_min) & (p[..., 0] <= self.east_max)
                 & (p[..., 1] >= self.north_min) & (p[..., 1] <= self.north_max))
+
+
+@dataclass(frozen=True)
+class RegionsExtent:
+    """Several boxes far apart, as one support: a gallery of places that no route joins (cities laid side by side
+    on the filter's plane, geoloc/apps/localize/route.py). Its area is the boxes' summed area, not that of the box
+    around them, so the gaps between places weigh nothing in the uniform prior."""
+
+    boxes: tuple[GalleryExtent, ...]
+
+    def __init__(self, boxes):
+        boxes = tuple(boxes)
+        if not boxes:
+            raise ValueError("a regions extent needs at least one box")
+        object.__setattr__(self, "boxes", boxes)
+
+    @property
+    def area_m2(self) -> float:
+        return float(sum(box.area_m2 for box in self.boxes))
+
+    def contains(self, points) -> np.ndarray:
+        """(...,) bool: whether each (..., 2) point (east, north) lies in one of the boxes."""
+        return np.logical_or.reduce([box.contains(points) for box in self.boxes])
+
+    def centres(self) -> np.ndarray:
+        """(R, 2) each box's centre (east, north)."""
+        return np.array([[(b.east_min + b.east_max) / 2, (b.north_min + b.north_max) / 2] for b in self.boxes])

@@ -66,7 +66,7 @@ from geoloc.sequence.odometry import Motion, Odometry
 from geoloc.sequence.rings import Rings
 
 
-@dataclass(frozen=True)
+@dataclass
 class FilterConfig:
     """The filter's hyperparameters; the module docstring gives each one's meaning and why its default."""
 

@@ -16,7 +16,7 @@ is answered, so a folder holding an image the query cannot take is refused, nami
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -27,6 +27,7 @@ from geoloc.config import ConfigError, checked
 from geoloc.data.io import read_rgb
 from geoloc.launch.run_log import run_log
 from geoloc.launch.rundir import claimed
+from geoloc.sequence.particle_filter import FilterConfig
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
@@ -43,6 +44,10 @@ class LocalizeConfig(QueryLimits, QuerySettings):
     heading_steps: int | None = None  # candidate headings of a heading search; null: the checkpoint's own
     device: str = "auto"
     picture: bool = True  # one PNG per image: the query, the top-k tiles and a map of the candidates
+    # a route: image= a folder of frames (in name order) and odometry= its odometry.csv (docs/sequence.md); the
+    # answers are fused into a track, route.jsonl, with route.png; null: every image on its own
+    odometry: str | None = None
+    route: FilterConfig = field(default_factory=FilterConfig)  # the sequence filter's settings (docs/sequence.md)
 
 
 def images_of(target: Path) -> list[Path]:
@@ -90,6 +95,7 @@ def localize(section: DictConfig) -> list[dict]:
     images = images_of(Path(cfg.image))
     out = Path(cfg.out)
     refuse_out_holding_inputs(out, images)
+    odometry = None if cfg.odometry is None else read_route_odometry(Path(cfg.odometry), images)
     answers = []
     with claimed(out, role="localization", key="out"), run_log(out, "localize"):  # one writer per folder; a failed
         # start leaves none; the log holds what the run printed
@@ -99,8 +105,16 @@ def localize(section: DictConfig) -> list[dict]:
             query = localizer.settings(given)
         except QueryError as err:
             raise ConfigError(f"localize.py: {err}") from None
+        if odometry is not None:  # a gallery that cannot carry a route is refused before any frame
+            from geoloc.apps.localize.route import route_plane, track
+
+            try:
+                plane = route_plane(localizer.places, cfg.route)
+            except ValueError as err:
+                raise ConfigError(f"localize.py odometry={cfg.odometry}: {err}") from None
         for path in images:  # every header before the first answer: an image the query cannot take stops no run midway
             localizer.check(*image_size(path.read_bytes(), str(path))[:2], query, name=str(path))
+        results = []
         with open(out / "localize.jsonl", "a") as lines:
             for path in images:
                 image = read_rgb(path)
@@ -115,4 +129,21 @@ def localize(section: DictConfig) -> list[dict]:
                 print(text)
                 lines.write(text + "\n")
                 answers.append(answer)
+                results.append(result)
+        if odometry is not None:
+            track(plane, images, results, odometry, cfg.route, out, cfg.picture)
     return answers
+
+
+def read_route_odometry(path: Path, images: list[Path]):
+    """The route's odometry, one row per frame (ConfigError naming the file otherwise), read before any frame."""
+    from geoloc.sequence.odometry import read_odometry
+
+    try:
+        odometry = read_odometry(path)
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"localize.py odometry={path}: {err}") from None
+    if len(odometry) != len(images):
+        raise ConfigError(f"localize.py odometry={path} has {len(odometry)} rows for {len(images)} frames in "
+                          f"image={images[0].parent}: a route needs one row per frame (frames in name order)")
+    return odometry

@@ -1,0 +1,115 @@
+"""localize.py with odometry=: a folder of frames fused into a track (route.jsonl, route.png), the filter's plane of
+a gallery whose tiles lie in places far apart, and the refusals before any frame is answered."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from geoloc.apps.localize.route import RoutePlane, regions_of, truth_of
+from geoloc.config import ConfigError
+from geoloc.data.geo import haversine_m, offset_to_latlon
+from geoloc.sequence.extent import GalleryExtent, RegionsExtent
+from geoloc.sequence.odometry import odometry_text
+from hydra import compose, initialize_config_dir
+
+from conftest import CONF
+from test_localize import gallery  # noqa: F401  (the module's trained checkpoint and saved gallery)
+
+CHICAGO, SEATTLE = (41.8781, -87.6298), (47.6062, -122.3321)
+
+
+def two_cities(step_m: float = 36.0, side: int = 4) -> np.ndarray:
+    """(2 side^2, 2) tile centres (lat, lon): a side x side grid, step_m apart, in each of two cities."""
+    grid = np.array([(e, n) for e in range(side) for n in range(side)], np.float64) * step_m
+    return np.concatenate([offset_to_latlon(city, grid[:, 0], grid[:, 1]) for city in (CHICAGO, SEATTLE)])
+
+
+def test_tiles_of_two_cities_are_two_regions_side_by_side_with_their_own_metres():
+    tiles = two_cities()
+    assert regions_of(tiles, 720.0).tolist() == [0] * 16 + [1] * 16
+    plane = RoutePlane.of("latlon", tiles, 72.0)
+    assert len(plane.extent.boxes) == 2
+    # metres within a region are the ground's: neighbours 36 m apart on the plane as on the earth
+    assert np.linalg.norm(plane.tiles[1] - plane.tiles[0]) == pytest.approx(haversine_m(tiles[1], tiles[0]), abs=0.01)
+    # the regions far apart on the plane, and the prior's area the two boxes' only
+    assert plane.tiles[16:, 0].min() - plane.tiles[:16, 0].max() > 50_000
+    assert plane.extent.area_m2 == pytest.approx(2 * (3 * 36.0 + 72.0) ** 2, rel=1e-4)  # tangent planes
+    for row in (0, 5, 21, 31):  # to the plane and back, in either region
+        back = plane.from_plane(plane.to_plane(tiles[row], row))
+        assert haversine_m(back, tiles[row]) < 1e-3
+        assert np.allclose(plane.to_plane(tiles[row]), plane.tiles[row], atol=1e-6)  # its region found without row
+
+
+def test_a_regions_extent_is_its_boxes():
+    boxes = [GalleryExtent(0, 10, 0, 10), GalleryExtent(100, 120, 0, 5)]
+    extent = RegionsExtent(boxes)
+    assert extent.area_m2 == 200.0
+    assert extent.contains(np.array([[5, 5], [50, 5], [110, 2], [110, 6]])).tolist() == [True, False, True, False]
+    with pytest.raises(ValueError, match="at least one box"):
+        RegionsExtent([])
+
+
+def test_a_frame_answer_takes_the_refined_positions_and_their_confidence():
+    tiles = two_cities()
+    plane = RoutePlane.of("latlon", tiles, 72.0)
+    near = offset_to_latlon(tiles[5], 3.0, -4.0)
+    hits = [{"row": 5, "score": 0.9, "refined_position": {"lat": near[0], "lon": near[1], "mass_5m": 0.3,
+                                                          "confidence_within_5m": 0.7}},
+            {"row": 20, "score": 0.8, "refined_position": {"lat": tiles[20][0], "lon": tiles[20][1],
+                                                           "mass_5m": 0.4}}]
+    answer = plane.answer(SimpleNamespace(topk=hits))
+    assert np.allclose(answer.centres, plane.tiles[[5, 20]])
+    assert np.allclose(answer.refined[0] - plane.tiles[5], [3.0, -4.0], atol=0.01)
+    assert answer.refined_confidence.tolist() == [0.7, 0.4]  # calibrated where given, else the refiner's own mass
+    plain = plane.answer(SimpleNamespace(topk=[{"row": 5, "score": 0.9}, {"row": 6, "score": 0.5}]))
+    assert plain.refined is None and plain.scores.tolist() == [0.9, 0.5]
+
+
+def test_truth_csv_beside_the_frames_is_read_onto_the_plane(tmp_path):
+    tiles = two_cities()
+    plane = RoutePlane.of("latlon", tiles, 72.0)
+    (tmp_path / "truth.csv").write_text("frame,lat,lon\n" + "".join(
+        f"{i},{float(tiles[r][0])!r},{float(tiles[r][1])!r}\n" for i, r in enumerate((3, 19))))
+    assert np.allclose(truth_of(tmp_path, plane), plane.tiles[[3, 19]], atol=1e-6)
+    assert truth_of(tmp_path / "nowhere", plane) is None
+
+
+def route_cfg(ckpt, folder, frames, out, *extra):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("localize", overrides=[f"ckpt={ckpt}", f"gallery={folder}", f"image={frames}", "topk=3",
+                                              f"out={out}", "device=cpu", "heading=0", *extra])
+
+
+def test_localize_py_fuses_a_folder_of_frames_with_its_odometry_into_a_track(gallery, tmp_path, capsys):  # noqa: F811
+    from geoloc.apps.localize.command import localize
+
+    root, ckpt, folder = gallery
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, n in enumerate((13, 14, 15)):
+        shutil.copy(root / f"streetview/panos/{n:07d}.jpg", frames / f"frame_{i:03d}.jpg")
+    (frames / "odometry.csv").write_text(odometry_text([0.0, 10.0, 10.0], [0.0, 0.0, 5.0]))
+    answers = localize(route_cfg(ckpt, folder, frames, tmp_path / "out", f"odometry={frames / 'odometry.csv'}",
+                                 "route.particles=500"))
+    lines = [json.loads(line) for line in (tmp_path / "out" / "route.jsonl").read_text().splitlines()]
+    assert [line["frame"] for line in lines] == ["frame_000.jpg", "frame_001.jpg", "frame_002.jpg"]
+    assert len(answers) == 3 and (tmp_path / "out" / "route.png").stat().st_size > 0
+    for line in lines:
+        assert set(line["position"]) == {"x_m", "y_m"} and 0.0 <= line["heading_deg"] < 360.0
+        cov = np.array(line["covariance_m2"])
+        assert cov.shape == (2, 2) and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() >= -1e-6
+        assert 0.0 <= line["tracked_mass"] <= 1.0 and line["region_95_area_m2"] > 0
+    again = tmp_path / "again"
+    localize(route_cfg(ckpt, folder, frames, again, f"odometry={frames / 'odometry.csv'}", "route.particles=500",
+                       "picture=false"))
+    assert [json.loads(x) for x in (again / "route.jsonl").read_text().splitlines()] == lines  # the same track
+    (frames / "odometry.csv").write_text(odometry_text([0.0, 10.0], [0.0, 0.0]))
+    with pytest.raises(ConfigError, match="2 rows for 3 frames"):
+        localize(route_cfg(ckpt, folder, frames, tmp_path / "short", f"odometry={frames / 'odometry.csv'}"))
+    assert not (tmp_path / "short").exists()  # refused before the run took its folder
+    with pytest.raises(ConfigError, match="odometry="):
+        localize(route_cfg(ckpt, folder, frames, tmp_path / "none", f"odometry={frames / 'missing.csv'}"))

@@ -18,24 +18,33 @@ def list_lines(path: str | Path, what: str) -> list[tuple[int, str]]:
     split file"). UTF-8 with or without its byte-order mark, or UTF-16 with its mark; other bytes are refused,
     naming the file."""
     path = Path(path)
-    data = path.read_bytes()
+    return text_lines(path.read_bytes(), f"{what} {path}")
+
+
+def text_lines(data: bytes, named: str) -> list[tuple[int, str]]:
+    """list_lines of bytes that came from elsewhere (an upload), `named` in the refusal (e.g. "the upload 'a.csv'")."""
     encoding = "utf-16" if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)) else "utf-8-sig"
     try:
         text = data.decode(encoding)
     except UnicodeDecodeError as err:
-        raise ValueError(f"{what} {path} is not UTF-8 text ({err}); save it as UTF-8 or restore it from the "
+        raise ValueError(f"{named} is not UTF-8 text ({err}); save it as UTF-8 or restore it from the "
                          "dataset release") from None
     return [(k, line.strip()) for k, line in enumerate(text.splitlines(), 1) if line.strip()]
 
 
 def csv_rows(path: str | Path, what: str) -> list[tuple[int, list[str]]]:
     """(line number, fields) of each non-blank line of a csv file whose records are one line each."""
+    return csv_lines(list_lines(path, what), path)
+
+
+def csv_lines(lines: list[tuple[int, str]], named) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of (line number, text) lines, one csv record each; `named` in the refusal."""
     rows = []
-    for k, line in list_lines(path, what):
+    for k, line in lines:
         try:
             rows.append((k, next(csv.reader([line]))))
         except csv.Error as err:
-            raise ValueError(f"{path}:{k}: not a csv row ({err}): {line[:120]!r}") from None
+            raise ValueError(f"{named}:{k}: not a csv row ({err}): {line[:120]!r}") from None
     return rows
 
 

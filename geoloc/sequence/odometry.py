@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geoloc.data.list_files import csv_rows
+from geoloc.data.list_files import csv_lines, csv_rows, text_lines
 
 ODOMETRY_FILE = "odometry.csv"
 COLUMNS = ("frame", "distance_m", "heading_change_deg")
@@ -51,7 +51,17 @@ def read_odometry(path: str | Path) -> Odometry:
     """The Odometry of `path` (an odometry.csv); every fault is a ValueError naming the file, the line, what is wrong
     and what to write instead."""
     path = Path(path)
-    rows = csv_rows(path, "odometry file")
+    return odometry_of_rows(csv_rows(path, "odometry file"), path)
+
+
+def parse_odometry(data: bytes, name: str) -> Odometry:
+    """read_odometry of an odometry.csv's bytes that came without a file (an upload), `name`d in every refusal."""
+    named = f"the upload {name!r}"
+    return odometry_of_rows(csv_lines(text_lines(data, named), named), named)
+
+
+def odometry_of_rows(rows: list[tuple[int, list[str]]], path) -> Odometry:
+    """The Odometry of an odometry.csv's (line number, fields) rows; `path` names it in every refusal."""
     if not rows:
         raise ValueError(f"{path} is empty: write the header {','.join(COLUMNS)} and one row per frame")
     header_line, header = rows[0]
@@ -84,7 +94,7 @@ def read_odometry(path: str | Path) -> Odometry:
     return Odometry(np.array(distance), np.array(turn))
 
 
-def _number(path: Path, line: int, name: str, text: str) -> float:
+def _number(path, line: int, name: str, text: str) -> float:
     try:
         value = float(text)
     except ValueError:

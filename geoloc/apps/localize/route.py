@@ -141,23 +141,34 @@ def route_plane(places, config: FilterConfig) -> RoutePlane:
 
 def track(plane: RoutePlane, frames: list[Path], results: list, odometry: Odometry, config: FilterConfig,
           out: Path, picture: bool = True, seed: int = 0) -> list[dict]:
-    """The route's track: each frame's answer (`results`, the localizer's, in frame order) fused with `odometry`,
-    written to out/route.jsonl (one line per frame: the frame, the filtered estimate, the frame's own answer) and
-    drawn in out/route.png; returns the lines."""
+    """The route's track (track_estimates) written to out/route.jsonl, one line per frame, and drawn in
+    out/route.png; returns the lines."""
     estimates = localize_route([plane.answer(r) for r in results], odometry, plane.extent, config, seed)
-    lines = []
+    lines = estimate_lines(plane, [frame.name for frame in frames], results, estimates)
     with open(out / "route.jsonl", "w") as file:
-        for frame, result, estimate in zip(frames, results, estimates):
-            single = result.refined_position or result.position
-            line = {"frame": frame.name, **plane.estimate_json(estimate),
-                    "frame_answer": {k: single[k] for k in POSITION_KEYS[plane.kind]}}
-            file.write(json.dumps(line) + "\n")
-            lines.append(line)
+        file.writelines(json.dumps(line) + "\n" for line in lines)
     print(json.dumps({"route": str(out / "route.jsonl"), "frames": len(lines), "last": lines[-1]}))
     if picture:
         from geoloc.apps.localize.route_figure import route_figure
 
         route_figure(plane, estimates, results, truth_of(frames[0].parent, plane), out / "route.png")
+    return lines
+
+
+def track_estimates(plane: RoutePlane, names: list[str], results: list, odometry: Odometry, config: FilterConfig,
+                    seed: int = 0) -> list[dict]:
+    """Each frame's answer (`results`, the localizer's, in frame order) fused with `odometry`: one dict per frame,
+    its name, the filtered estimate and the frame's own answer."""
+    estimates = localize_route([plane.answer(r) for r in results], odometry, plane.extent, config, seed)
+    return estimate_lines(plane, names, results, estimates)
+
+
+def estimate_lines(plane: RoutePlane, names: list[str], results: list, estimates: list[FrameEstimate]) -> list[dict]:
+    lines = []
+    for name, result, estimate in zip(names, results, estimates):
+        single = result.refined_position or result.position
+        lines.append({"frame": name, **plane.estimate_json(estimate),
+                      "frame_answer": {k: single[k] for k in POSITION_KEYS[plane.kind]}})
     return lines
 
 

@@ -11,6 +11,8 @@ POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360
 the checkpoint was trained, Localizer.default_heading), `heading_prior` (± degrees around heading to search) and
 `abstain` (a confidence threshold in [0, 1]) as form fields or query parameters, each given once ->
 localizer.localize(...)'s answer, as JSON.
+POST /localize/route: a route's frames and odometry in one request, the answers fused into a track
+(route_endpoint.py).
 No response carries CORS headers: a page of another origin cannot read the answers. Every response carries a
 Content-Security-Policy and frame protection (headers.py). FastAPI's /docs and /redoc, which load scripts from a
 CDN, are off unless `api_docs`; /openapi.json describes the API.
@@ -68,9 +70,11 @@ class Service(FastAPI):
 
 
 def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_SECONDS,
-               api_docs: bool = False) -> FastAPI:
-    """A FastAPI app answering /health and /localize from `localizer` (module docstring); api_docs: serve FastAPI's
-    /docs and /redoc (their scripts come from cdn.jsdelivr.net)."""
+               api_docs: bool = False, route=None, max_frames: int | None = None) -> FastAPI:
+    """A FastAPI app answering /health, /localize and /localize/route from `localizer` (module docstring);
+    api_docs: serve FastAPI's /docs and /redoc (their scripts come from cdn.jsdelivr.net); route: the sequence
+    filter's FilterConfig (None: its defaults); max_frames: the frames one route request may send (None:
+    route_endpoint.MAX_FRAMES)."""
     docs = {"docs_url": "/docs", "redoc_url": "/redoc"} if api_docs else {"docs_url": None, "redoc_url": None}
     app = Service({path: DOCS_POLICY for path in docs.values() if path}, title="geoloc",
                   summary="Where was this street image taken? Retrieval against a saved gallery.", **docs)
@@ -118,6 +122,10 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
                                          "up; its log holds the traceback") from None
         return Response(body, media_type="application/json")
 
+    from geoloc.apps.serve.route_endpoint import MAX_FRAMES, add_route
+    from geoloc.sequence.particle_filter import FilterConfig
+
+    add_route(app, localizer, one_at_a_time, max_seconds, route or FilterConfig(), worded, max_frames or MAX_FRAMES)
     return app
 
 

@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from omegaconf import MISSING
 
 from geoloc.apps.query import QueryLimits, check_headings
 from geoloc.apps.serve.app import MAX_BYTES, MAX_SECONDS, create_app
+from geoloc.apps.serve.route_endpoint import MAX_FRAMES
+from geoloc.sequence.particle_filter import FilterConfig
 
 LIMITS = QueryLimits()
 USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=8000] [device=auto]
                     [heading_steps=K] [max_bytes={MAX_BYTES}] [max_seconds={MAX_SECONDS:g}]
                     [max_pixels={LIMITS.max_pixels}] [max_canvas_side={LIMITS.max_canvas_side}]
                     [max_headings={LIMITS.max_headings}] [max_topk={LIMITS.max_topk}] [api_docs=false]
+                    [max_frames={MAX_FRAMES}] [route.KEY=VALUE ...]
 
   ckpt        a checkpoint written by train.py (best.pt)
   gallery     a gallery saved from it: python evaluate.py ckpt=PATH gallery.save=DIR
@@ -31,8 +34,11 @@ USAGE = f"""usage: geoloc serve ckpt=PATH gallery=DIR [host=127.0.0.1] [port=800
               header before it is decoded; heading_steps over max_headings is refused at start
   api_docs    serve FastAPI's /docs and /redoc pages, which load their scripts from cdn.jsdelivr.net (off: the
               API is described by /openapi.json)
+  max_frames  the frames one POST /localize/route request may send (the whole route shares max_seconds)
+  route.*     the sequence filter's settings for POST /localize/route (docs/sequence.md)
 
-POST /localize (multipart field image; fov, topk, heading, heading_prior, abstain), GET /health, GET / (the page:
+POST /localize (multipart field image; fov, topk, heading, heading_prior, abstain), POST /localize/route
+(file fields frames, repeated, and odometry; the same settings), GET /health, GET / (the page:
 open http://HOST:PORT/ in a browser) and GET /tiles/{{row}}; see docs/apps.md, "Query service"."""
 
 
@@ -49,6 +55,8 @@ class ServeConfig(QueryLimits):
     max_bytes: int = MAX_BYTES
     max_seconds: float = MAX_SECONDS
     api_docs: bool = False  # FastAPI's /docs and /redoc, whose scripts come from a CDN
+    max_frames: int = MAX_FRAMES  # the frames one POST /localize/route may send
+    route: FilterConfig = field(default_factory=FilterConfig)  # the sequence filter of POST /localize/route
 
     def __post_init__(self):
         super().__post_init__()
@@ -60,6 +68,8 @@ class ServeConfig(QueryLimits):
             raise ValueError(f"max_bytes must be >= 1, got {self.max_bytes}")
         if not self.max_seconds > 0:
             raise ValueError(f"max_seconds must be > 0, got {self.max_seconds}")
+        if self.max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1, got {self.max_frames}")
 
 
 def main(args: list[str]) -> int:
@@ -76,6 +86,7 @@ def main(args: list[str]) -> int:
     except (FileNotFoundError, ValueError) as err:  # its message names the file or the key, and what to do
         print(f"geoloc serve: {err}", file=sys.stderr)
         return 2
-    app = create_app(localizer, max_bytes=cfg.max_bytes, max_seconds=cfg.max_seconds, api_docs=cfg.api_docs)
+    app = create_app(localizer, max_bytes=cfg.max_bytes, max_seconds=cfg.max_seconds, api_docs=cfg.api_docs,
+                     route=cfg.route, max_frames=cfg.max_frames)
     uvicorn.run(app, host=cfg.host, port=cfg.port)  # one worker process: a second would load a second model
     return 0

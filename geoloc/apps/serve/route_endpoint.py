@@ -1,0 +1,104 @@
+"""POST /localize/route: a route's frames and their odometry in one request, each frame answered as /localize
+answers one image, the answers fused into a track by the sequence filter (docs/sequence.md).
+
+Multipart form: file fields `frames` (one per frame, in route order, repeated) and `odometry` (an odometry.csv:
+`frame,distance_m,heading_change_deg`, one row per frame), and /localize's settings (fov, topk, heading, ...) as
+form fields or query parameters, each once. -> {"frames": [{"frame": file name, the filtered estimate
+(route.RoutePlane.estimate_json: position, heading_deg, covariance_m2, tracked_mass, region_95_*), "frame_answer":
+the frame's own answer}], "answers": each frame's /localize answer}.
+
+The bounds are /localize's, for the request as a whole: its body within max_bytes, one turn at the network lasting
+at most max_seconds for all its frames (past it, 503 naming the frame reached), and at most max_frames frames. A
+frame or an odometry file that cannot be read is a 4xx naming it; nothing is answered until every frame's header
+and the odometry have been checked.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Annotated
+
+from fastapi import Depends, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi.responses import Response
+
+from geoloc.apps.query import QueryError, image_size
+from geoloc.apps.serve.form import FIELDS, QueryForm, sent_settings
+from geoloc.apps.serve.form import HINTS as FIELD_HINTS
+from geoloc.apps.serve.upload import decode_upload
+
+MAX_FRAMES = 64  # frames a request may send: at about 0.2 s a frame on a CPU, a route within max_seconds' reach
+FRAMES = "the route's frames, in route order: one file field `frames` per frame (JPEG or PNG)"
+ODOMETRY = "the route's odometry.csv: frame,distance_m,heading_change_deg, one row per frame (docs/sequence.md)"
+HINTS = {"frames": FRAMES, "odometry": ODOMETRY, **FIELD_HINTS}
+
+
+def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, worded,
+              max_frames: int = MAX_FRAMES) -> None:
+    """POST /localize/route on `app`, answering from `localizer` (with `places`) through the filter of
+    `route_config` (a FilterConfig); `one_at_a_time`: the app's lock of the network; `worded`: app.worded."""
+    from geoloc.apps.localize.route import route_plane, track_estimates
+    from geoloc.sequence.odometry import parse_odometry
+
+    try:  # once: a gallery whose tiles have no positions answers every route request with why
+        plane, why = route_plane(localizer.places, route_config), None
+    except (ValueError, AttributeError) as err:
+        plane, why = None, str(err) if isinstance(err, ValueError) else "this localizer has no gallery places"
+
+    @app.post("/localize/route", dependencies=[Depends(route_fields_once)])
+    def localize_route(frames: Annotated[list[UploadFile], File(description=FRAMES)],
+                       odometry: Annotated[UploadFile, File(description=ODOMETRY)],
+                       form: Annotated[QueryForm, Form()], params: Annotated[QueryForm, Query()]) -> Response:
+        if plane is None:
+            raise HTTPException(409, f"this service cannot follow a route: {why}")
+        if len(frames) > max_frames:
+            raise HTTPException(413, f"{len(frames)} frames: a route request takes at most max_frames={max_frames}; "
+                                     "send the route in parts")
+        sent, where = sent_settings(form, params)
+        try:
+            query = localizer.parse(**sent)
+        except QueryError as err:
+            raise worded(err, where, max_seconds) from None
+        try:
+            motion = parse_odometry(odometry.file.read(), odometry.filename or "odometry")
+        except ValueError as err:
+            raise HTTPException(400, f"odometry: {err}") from None
+        if len(motion) != len(frames):
+            raise HTTPException(400, f"the odometry has {len(motion)} rows for {len(frames)} frames: a route needs "
+                                     "one row per frame, in the frames' order")
+        datas = [frame.file.read() for frame in frames]
+        names = [frame.filename or f"frame {i}" for i, frame in enumerate(frames)]
+        for data, name in zip(datas, names):  # every frame's header before the first answer
+            try:
+                localizer.check(*image_size(data, f"the upload {name!r}")[:2], query, name=f"the upload {name!r}")
+            except QueryError as err:
+                raise worded(err, where, max_seconds) from None
+        with one_at_a_time:
+            deadline = time.monotonic() + max_seconds  # the whole route's turn
+            results = []
+            try:
+                for data, name in zip(datas, names):
+                    rgb, _ = decode_upload(data, name, lambda width, height, name=name: localizer.check(
+                        width, height, query, name=f"the upload {name!r}"))
+                    results.append(localizer.localize(rgb, query, name=name, deadline=deadline))
+            except QueryError as err:
+                raise worded(err, where, max_seconds) from None
+        lines = track_estimates(plane, names, results, motion, route_config)
+        body = {"frames": lines, "answers": [r.to_json() for r in results]}
+        return Response(json.dumps(body, allow_nan=False), media_type="application/json")
+
+
+async def route_fields_once(request: Request) -> None:
+    """Each setting and `odometry` once; `frames` as often as there are frames; nothing else (a 422 naming it)."""
+    form = await request.form()
+    for where, items, takes in (("form field", form.multi_items(), HINTS),
+                                ("query parameter", request.query_params.multi_items(), FIELDS)):
+        counts: dict[str, int] = {}
+        for key, _ in items:
+            counts[key] = counts.get(key, 0) + 1
+        for key, count in counts.items():
+            if key not in takes:
+                raise HTTPException(422, f"unknown {where} {key!r}: /localize/route takes the file fields frames "
+                                         f"and odometry and {', '.join(FIELDS)}")
+            if count > 1 and key != "frames":
+                raise HTTPException(422, f"{where} {key!r} is given {count} times: give it once ({HINTS[key]})")

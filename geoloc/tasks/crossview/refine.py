@@ -249,16 +249,23 @@ def refined(refiner, refine: RefineConfig, query_maps: torch.Tensor, reference_m
     queries, tiles = torch.as_tensor(np.asarray(queries)), torch.as_tensor(np.asarray(tiles))
     extents = None if split is None or split.reference_extent_m is None else split.reference_extent_m[tiles.numpy()]
     positions, headings, masses = [], [], []
+    smoothing = read_with(refine)
     for start in range(0, len(tiles), chunk):
         part = slice(start, start + chunk)
         extent = None if extents is None else extents[part]
         out = match(refiner, refine, query_maps[queries[part]], reference_maps[tiles[part]], candidates, extent)
-        positions.append(out.position(refine.peak_smoothing).float().cpu())
+        positions.append(out.position(*smoothing).float().cpu())
         headings.append(out.heading().float().cpu())
         if extent is not None:
             metres = torch.as_tensor(np.asarray(extent, np.float64), dtype=torch.float32).to(query_maps.device)
-            masses.append(out.mass_within(RADIUS_M, metres, refine.peak_smoothing).float().cpu())
+            masses.append(out.mass_within(RADIUS_M, metres, *smoothing).float().cpu())
     return torch.cat(positions), torch.cat(headings), torch.cat(masses) if masses else None
+
+
+def read_with(refine: RefineConfig) -> tuple:
+    """The arguments a Refinement's position / mass_within are read with: (peak_smoothing,) where it is set, else
+    none, so an answer object of a plug-in that predates the key is read as before."""
+    return (refine.peak_smoothing,) if refine.peak_smoothing else ()
 
 
 def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidates: torch.Tensor,

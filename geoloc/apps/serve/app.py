@@ -36,7 +36,6 @@ import json
 import logging
 import threading
 import time
-from collections import Counter
 from typing import Annotated
 
 from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
@@ -45,17 +44,19 @@ from fastapi.responses import JSONResponse, Response
 
 from geoloc.apps.query import QueryError
 from geoloc.apps.serve.body_limit import BodyLimit
-from geoloc.apps.serve.form import FIELDS, QueryForm, sent_settings
+from geoloc.apps.serve.form import QueryForm, each_field_once, sent_settings
 from geoloc.apps.serve.form import HINTS as FIELD_HINTS
 from geoloc.apps.serve.headers import DOCS_POLICY, SecurityHeaders
 from geoloc.apps.serve.page import add_page
+from geoloc.apps.serve.route_endpoint import FILES as ROUTE_FILES
+from geoloc.apps.serve.route_endpoint import MAX_FRAMES, add_route
 from geoloc.apps.serve.upload import SEND, decode_upload
 
 log = logging.getLogger("geoloc.apps.serve")
 
 MAX_BYTES = 32 * 2**20
 MAX_SECONDS = 10.0  # a query's turn at the network: past it, its heading search stops with a 503
-HINTS = {"image": SEND, **FIELD_HINTS}
+HINTS = {"image": SEND, **ROUTE_FILES, **FIELD_HINTS}  # what each field is for, named in a 422
 
 
 class Service(FastAPI):
@@ -95,7 +96,7 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
     add_page(app, localizer)
 
     # a sync endpoint: FastAPI runs it in its threadpool, so the event loop stays free while the network runs
-    @app.post("/localize", dependencies=[Depends(each_field_once)])
+    @app.post("/localize", dependencies=[Depends(each_field_once("/localize", {"image": SEND}))])
     def localize(image: Annotated[UploadFile, File(description="the street image: JPEG or PNG")],
                  form: Annotated[QueryForm, Form()], params: Annotated[QueryForm, Query()]) -> Response:
         sent, where = sent_settings(form, params)
@@ -122,25 +123,10 @@ def create_app(localizer, max_bytes: int = MAX_BYTES, max_seconds: float = MAX_S
                                          "up; its log holds the traceback") from None
         return Response(body, media_type="application/json")
 
-    from geoloc.apps.serve.route_endpoint import MAX_FRAMES, add_route
     from geoloc.sequence.particle_filter import FilterConfig
 
     add_route(app, localizer, one_at_a_time, max_seconds, route or FilterConfig(), worded, max_frames or MAX_FRAMES)
     return app
-
-
-async def each_field_once(request: Request) -> None:
-    """A form field or query parameter given twice, or one this service does not take, is a 422 naming it: a form
-    parser keeps only the last of repeated values, so the answer would silently use one of them."""
-    form = await request.form()  # FastAPI has parsed it for the endpoint's fields: this is that copy
-    for where, items, takes in (("form field", form.multi_items(), HINTS),
-                                ("query parameter", request.query_params.multi_items(), FIELDS)):
-        for key, count in Counter(key for key, _ in items).items():
-            if key not in takes:
-                raise HTTPException(422, f"unknown {where} {key!r}: /localize takes the file field image and "
-                                         f"{', '.join(FIELDS)} (form fields or query parameters)")
-            if count > 1:
-                raise HTTPException(422, f"{where} {key!r} is given {count} times: give it once ({HINTS[key]})")
 
 
 def worded(err: QueryError, where: dict, max_seconds: float) -> QueryError:

@@ -7,7 +7,9 @@ QuerySettings everything below the door trusts.
 
 from __future__ import annotations
 
-from fastapi import HTTPException
+from collections import Counter
+
+from fastapi import HTTPException, Request
 from pydantic import BaseModel, Field
 
 from geoloc.apps.query import ABSTAIN, FOV, HEADING, HEADING_PRIOR, REFINE, TOPK
@@ -39,3 +41,25 @@ def sent_settings(form: QueryForm, params: QueryForm) -> tuple[dict, dict]:
         sent[key] = in_params if in_form is None else in_form
         where[key] = "query parameter" if in_form is None and in_params is not None else "form field"
     return sent, where
+
+
+def each_field_once(endpoint: str, files: dict[str, str], repeated: tuple[str, ...] = ()):
+    """The FastAPI dependency of `endpoint`, whose file fields are `files` ({name: what to send}): a form field or
+    query parameter it does not take, or one given twice (except the file fields in `repeated`, one per item), is a
+    422 naming it, since a form parser keeps only the last of repeated values and the answer would silently use one
+    of them."""
+    hints = {**files, **HINTS}
+    named = f"the file field{'s' if len(files) > 1 else ''} {' and '.join(files)}"
+
+    async def check(request: Request) -> None:
+        form = await request.form()  # FastAPI has parsed it for the endpoint's fields: this is that copy
+        for where, items, takes in (("form field", form.multi_items(), hints),
+                                    ("query parameter", request.query_params.multi_items(), FIELDS)):
+            for key, count in Counter(key for key, _ in items).items():
+                if key not in takes:
+                    raise HTTPException(422, f"unknown {where} {key!r}: {endpoint} takes {named} and "
+                                             f"{', '.join(FIELDS)} (form fields or query parameters)")
+                if count > 1 and key not in repeated:
+                    raise HTTPException(422, f"{where} {key!r} is given {count} times: give it once "
+                                             f"({hints[key]})")
+    return check

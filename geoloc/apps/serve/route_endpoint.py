@@ -19,18 +19,17 @@ import json
 import time
 from typing import Annotated
 
-from fastapi import Depends, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import Depends, File, Form, HTTPException, Query, UploadFile
 from fastapi.responses import Response
 
 from geoloc.apps.query import QueryError, image_size
-from geoloc.apps.serve.form import FIELDS, QueryForm, sent_settings
-from geoloc.apps.serve.form import HINTS as FIELD_HINTS
+from geoloc.apps.serve.form import QueryForm, each_field_once, sent_settings
 from geoloc.apps.serve.upload import decode_upload
 
 MAX_FRAMES = 64  # frames a request may send: at about 0.2 s a frame on a CPU, a route within max_seconds' reach
 FRAMES = "the route's frames, in route order: one file field `frames` per frame (JPEG or PNG)"
 ODOMETRY = "the route's odometry.csv: frame,distance_m,heading_change_deg, one row per frame (docs/sequence.md)"
-HINTS = {"frames": FRAMES, "odometry": ODOMETRY, **FIELD_HINTS}
+FILES = {"frames": FRAMES, "odometry": ODOMETRY}
 
 
 def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, worded,
@@ -45,7 +44,7 @@ def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, w
     except (ValueError, AttributeError) as err:
         plane, why = None, str(err) if isinstance(err, ValueError) else "this localizer has no gallery places"
 
-    @app.post("/localize/route", dependencies=[Depends(route_fields_once)])
+    @app.post("/localize/route", dependencies=[Depends(each_field_once("/localize/route", FILES, ("frames",)))])
     def localize_route(frames: Annotated[list[UploadFile], File(description=FRAMES)],
                        odometry: Annotated[UploadFile, File(description=ODOMETRY)],
                        form: Annotated[QueryForm, Form()], params: Annotated[QueryForm, Query()]) -> Response:
@@ -86,19 +85,3 @@ def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, w
         lines = track_estimates(plane, names, results, motion, route_config)
         body = {"frames": lines, "answers": [r.to_json() for r in results]}
         return Response(json.dumps(body, allow_nan=False), media_type="application/json")
-
-
-async def route_fields_once(request: Request) -> None:
-    """Each setting and `odometry` once; `frames` as often as there are frames; nothing else (a 422 naming it)."""
-    form = await request.form()
-    for where, items, takes in (("form field", form.multi_items(), HINTS),
-                                ("query parameter", request.query_params.multi_items(), FIELDS)):
-        counts: dict[str, int] = {}
-        for key, _ in items:
-            counts[key] = counts.get(key, 0) + 1
-        for key, count in counts.items():
-            if key not in takes:
-                raise HTTPException(422, f"unknown {where} {key!r}: /localize/route takes the file fields frames "
-                                         f"and odometry and {', '.join(FIELDS)}")
-            if count > 1 and key != "frames":
-                raise HTTPException(422, f"{where} {key!r} is given {count} times: give it once ({HINTS[key]})")

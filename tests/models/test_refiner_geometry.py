@@ -239,6 +239,8 @@ def test_peak_smoothing_answers_where_the_mass_is_not_the_narrow_spike():
     assert tuple(torch.round(smoothed).int().tolist()) == tuple(int(v) for v in expected) == (20, 9)
     extent = torch.tensor([[32.0, 32.0]])  # 1 m a lattice step
     assert out.mass_within(6.0, extent, smoothing).item() > 0.5 > out.mass_within(6.0, extent).item()
+    read = out.position(smoothing)  # an answer already read is not read again
+    assert out.mass_within(6.0, extent, smoothing, at=read).item() == out.mass_within(6.0, extent, smoothing).item()
 
 
 def test_peak_smoothing_is_the_raw_peak_for_a_smooth_map_and_never_leaves_the_tile():

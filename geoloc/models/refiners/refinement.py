@@ -72,14 +72,15 @@ class Refinement:
             heading = heading + _vertex(left, mid, right) * 360.0 / k
         return heading % 360.0
 
-    def mass_within(self, radius: torch.Tensor | float, extent: torch.Tensor, smoothing: float = 0.0) -> torch.Tensor:
-        """(B,) the probability mass of the positions within `radius` metres of the estimate (position(smoothing)):
-        the refiner's own score of its answer (what a calibrator maps to P(error <= radius)). extent: B x 2
-        (height, width) metres the tile covers."""
+    def mass_within(self, radius: torch.Tensor | float, extent: torch.Tensor, smoothing: float = 0.0,
+                    at: torch.Tensor | None = None) -> torch.Tensor:
+        """(B,) the probability mass of the positions within `radius` metres of the estimate (position(smoothing),
+        or `at` where the caller has read it already): the refiner's own score of its answer (what a calibrator
+        maps to P(error <= radius)). extent: B x 2 (height, width) metres the tile covers."""
         prob = self.position_log_prob.exp()
         b, rows, cols = prob.shape
         extent = torch.as_tensor(extent, dtype=prob.dtype, device=prob.device).reshape(b, 2)
-        at = self.position(smoothing) * (torch.tensor([rows - 1, cols - 1], device=prob.device))
+        at = (self.position(smoothing) if at is None else at) * torch.tensor([rows - 1, cols - 1], device=prob.device)
         ys = torch.arange(rows, device=prob.device, dtype=prob.dtype)[None, :, None]
         xs = torch.arange(cols, device=prob.device, dtype=prob.dtype)[None, None, :]
         dy = (ys - at[:, 0, None, None]) * (extent[:, 0, None, None] / (rows - 1))

@@ -28,7 +28,7 @@ from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import autocast, resolve_device
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
-from geoloc.tasks.crossview.refine import matcher, offset_m, read_with
+from geoloc.tasks.crossview.refine import matcher, offset_m, read_answer
 from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
 from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
@@ -212,13 +212,13 @@ class CrossViewEncoder:
                     return None
                 inputs = torch.stack([self.refine_tile(image) for image in tiles])
                 found = matched(self.refiner.encode_reference(inputs.to(self.device)))
-                smoothing = read_with(self.refine_config)
-                answer = {"offset_m": offset_m(found.position(*smoothing).cpu().double().numpy(), extent[part]),
+                metres = torch.as_tensor(extent[part], dtype=torch.float32, device=self.device)
+                position, mass = read_answer(found, self.refine_config, radius_m, metres)
+                answer = {"offset_m": offset_m(position.cpu().double().numpy(), extent[part]),
                           "heading_offset_deg": (found.heading().cpu().numpy()
                                                  if self.refine_config.orientation_noise_deg > 0
                                                  else np.zeros(len(part))),
-                          "mass": found.mass_within(radius_m, torch.as_tensor(
-                              extent[part], dtype=torch.float32, device=self.device), *smoothing).cpu().numpy(),
+                          "mass": mass.cpu().numpy(),
                           "maps": found.position_log_prob.exp().cpu().numpy(),
                           "tile_size_px": np.array([image.shape[:2] for image in tiles])}
                 for key, value in answer.items():

@@ -249,23 +249,29 @@ def refined(refiner, refine: RefineConfig, query_maps: torch.Tensor, reference_m
     queries, tiles = torch.as_tensor(np.asarray(queries)), torch.as_tensor(np.asarray(tiles))
     extents = None if split is None or split.reference_extent_m is None else split.reference_extent_m[tiles.numpy()]
     positions, headings, masses = [], [], []
-    smoothing = read_with(refine)
     for start in range(0, len(tiles), chunk):
         part = slice(start, start + chunk)
         extent = None if extents is None else extents[part]
         out = match(refiner, refine, query_maps[queries[part]], reference_maps[tiles[part]], candidates, extent)
-        positions.append(out.position(*smoothing).float().cpu())
+        metres = (None if extent is None else
+                  torch.as_tensor(np.asarray(extent, np.float64), dtype=torch.float32).to(query_maps.device))
+        position, mass = read_answer(out, refine, RADIUS_M, metres)
+        positions.append(position.float().cpu())
         headings.append(out.heading().float().cpu())
-        if extent is not None:
-            metres = torch.as_tensor(np.asarray(extent, np.float64), dtype=torch.float32).to(query_maps.device)
-            masses.append(out.mass_within(RADIUS_M, metres, *smoothing).float().cpu())
+        if mass is not None:
+            masses.append(mass.float().cpu())
     return torch.cat(positions), torch.cat(headings), torch.cat(masses) if masses else None
 
 
-def read_with(refine: RefineConfig) -> tuple:
-    """The arguments a Refinement's position / mass_within are read with: (peak_smoothing,) where it is set, else
-    none, so an answer object of a plug-in that predates the key is read as before."""
-    return (refine.peak_smoothing,) if refine.peak_smoothing else ()
+def read_answer(out, refine: RefineConfig, radius_m: float, extent_m: torch.Tensor | None):
+    """(B x 2 tile fractions, (B,) the mass within radius_m of them, or None without extent_m) of a refiner's answer
+    `out`, read with refine.peak_smoothing where it is set (the blurred answer reused for the mass, not blurred
+    twice); without the key exactly as before, so a plug-in's answer object that predates it is read as it was."""
+    if not refine.peak_smoothing:
+        return out.position(), None if extent_m is None else out.mass_within(radius_m, extent_m)
+    position = out.position(refine.peak_smoothing)
+    mass = None if extent_m is None else out.mass_within(radius_m, extent_m, refine.peak_smoothing, at=position)
+    return position, mass
 
 
 def fine_metrics(refiner, split: RetrievalSplit, refine: RefineConfig, candidates: torch.Tensor,

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from geoloc.apps.localize.route import route_plane, track_estimates
+from geoloc.apps.localize.route import fused, route_plane
 from geoloc.apps.query import QueryLimits, check_settings, check_size
 from geoloc.apps.serve import create_app
 from geoloc.sequence.odometry import odometry_text, parse_odometry
@@ -78,8 +78,8 @@ def test_a_route_request_answers_each_frame_and_fuses_them_as_localize_py_does()
         assert set(line["position"]) == {"x_m", "y_m"} and np.array(line["covariance_m2"]).shape == (2, 2)
     # the same answers fused by localize.py's path give the same track
     results = [Result([b, b + 1, b + 2], [0.9, 0.8, 0.7]) for b in (5, 6, 7)]
-    expected = track_estimates(route_plane(localizer.places, config), ["f0.png", "f1.png", "f2.png"], results,
-                               parse_odometry(odometry.encode(), "odometry.csv"), config)
+    expected = fused(route_plane(localizer.places, config), ["f0.png", "f1.png", "f2.png"], results,
+                     parse_odometry(odometry.encode(), "odometry.csv"), config).lines
     assert body["frames"] == expected
 
 

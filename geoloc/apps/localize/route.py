@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -139,37 +140,41 @@ def route_plane(places, config: FilterConfig) -> RoutePlane:
     return RoutePlane.of(places.kind, places.reference_positions, width)
 
 
+class RouteTrack(NamedTuple):
+    """A route fused: one line per frame (its name, the filtered estimate, the frame's own answer), and the frames'
+    FrameAnswers and FrameEstimates they come from."""
+
+    lines: list[dict]
+    answers: list[FrameAnswer]
+    estimates: list[FrameEstimate]
+
+
 def track(plane: RoutePlane, frames: list[Path], results: list, odometry: Odometry, config: FilterConfig,
           out: Path, picture: bool = True, seed: int = 0) -> list[dict]:
-    """The route's track (track_estimates) written to out/route.jsonl, one line per frame, and drawn in
-    out/route.png; returns the lines."""
-    estimates = localize_route([plane.answer(r) for r in results], odometry, plane.extent, config, seed)
-    lines = estimate_lines(plane, [frame.name for frame in frames], results, estimates)
+    """The route's track (fused) written to out/route.jsonl, one line per frame, and drawn in out/route.png;
+    returns the lines."""
+    route = fused(plane, [frame.name for frame in frames], results, odometry, config, seed)
     with open(out / "route.jsonl", "w") as file:
-        file.writelines(json.dumps(line) + "\n" for line in lines)
-    print(json.dumps({"route": str(out / "route.jsonl"), "frames": len(lines), "last": lines[-1]}))
+        file.writelines(json.dumps(line) + "\n" for line in route.lines)
+    print(json.dumps({"route": str(out / "route.jsonl"), "frames": len(route.lines), "last": route.lines[-1]}))
     if picture:
         from geoloc.apps.localize.route_figure import route_figure
 
-        route_figure(plane, estimates, results, truth_of(frames[0].parent, plane), out / "route.png")
-    return lines
+        route_figure(plane, route.estimates, route.answers, truth_of(frames[0].parent, plane), out / "route.png")
+    return route.lines
 
 
-def track_estimates(plane: RoutePlane, names: list[str], results: list, odometry: Odometry, config: FilterConfig,
-                    seed: int = 0) -> list[dict]:
-    """Each frame's answer (`results`, the localizer's, in frame order) fused with `odometry`: one dict per frame,
-    its name, the filtered estimate and the frame's own answer."""
-    estimates = localize_route([plane.answer(r) for r in results], odometry, plane.extent, config, seed)
-    return estimate_lines(plane, names, results, estimates)
-
-
-def estimate_lines(plane: RoutePlane, names: list[str], results: list, estimates: list[FrameEstimate]) -> list[dict]:
+def fused(plane: RoutePlane, names: list[str], results: list, odometry: Odometry, config: FilterConfig,
+          seed: int = 0) -> RouteTrack:
+    """Each frame's answer (`results`, the localizer's, in frame order) fused with `odometry`."""
+    answers = [plane.answer(r) for r in results]
+    estimates = localize_route(answers, odometry, plane.extent, config, seed)
     lines = []
     for name, result, estimate in zip(names, results, estimates):
         single = result.refined_position or result.position
         lines.append({"frame": name, **plane.estimate_json(estimate),
                       "frame_answer": {k: single[k] for k in POSITION_KEYS[plane.kind]}})
-    return lines
+    return RouteTrack(lines, answers, estimates)
 
 
 def truth_of(folder: Path, plane: RoutePlane) -> np.ndarray | None:

@@ -10,9 +10,10 @@ import numpy as np
 ELLIPSE_CHI2_95 = 5.991  # the chi-square 95% quantile with 2 degrees of freedom
 
 
-def route_figure(plane, estimates, results, truth: np.ndarray | None, path: Path) -> Path:
+def route_figure(plane, estimates, answers, truth: np.ndarray | None, path: Path) -> Path:
     """Draw the route on the filter's plane, in metres east and north of the track's first point, zoomed to the
-    track and the truth."""
+    track and the truth: `estimates` and `answers` (FrameAnswer: each frame's top-1, refined where it was) per
+    frame."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -20,8 +21,7 @@ def route_figure(plane, estimates, results, truth: np.ndarray | None, path: Path
 
     origin = np.asarray(estimates[0].position, np.float64)
     track = np.stack([e.position for e in estimates]) - origin
-    answers = np.stack([plane.answer(r).refined[0] if plane.answer(r).refined is not None
-                        else plane.answer(r).centres[0] for r in results]) - origin
+    answers = np.stack([a.centres[0] if a.refined is None else a.refined[0] for a in answers]) - origin
     tiles = plane.tiles - origin
     truth = None if truth is None else truth - origin
     shown = [track] + ([truth] if truth is not None else [])

@@ -36,7 +36,7 @@ def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, w
               max_frames: int = MAX_FRAMES) -> None:
     """POST /localize/route on `app`, answering from `localizer` (with `places`) through the filter of
     `route_config` (a FilterConfig); `one_at_a_time`: the app's lock of the network; `worded`: app.worded."""
-    from geoloc.apps.localize.route import route_plane, track_estimates
+    from geoloc.apps.localize.route import fused, route_plane
     from geoloc.sequence.odometry import parse_odometry
 
     try:  # once: a gallery whose tiles have no positions answers every route request with why
@@ -82,6 +82,6 @@ def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, w
                     results.append(localizer.localize(rgb, query, name=name, deadline=deadline))
             except QueryError as err:
                 raise worded(err, where, max_seconds) from None
-        lines = track_estimates(plane, names, results, motion, route_config)
-        body = {"frames": lines, "answers": [r.to_json() for r in results]}
+        body = {"frames": fused(plane, names, results, motion, route_config).lines,
+                "answers": [r.to_json() for r in results]}
         return Response(json.dumps(body, allow_nan=False), media_type="application/json")

@@ -3,14 +3,17 @@ on one thread, at the refiner's input sides and with a known heading (1 bin) or 
 
     OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128 256] [--bins 1 12 36] [--tiles 5] [--repeats 20]
         [--overlap mean|window] [--query-scale 1.13] [--kernel-frac 1.0] [--context 1] [--peak-smoothing 0.04]
+        [--cpu-precision bf16]
 
 Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once).
 --query-scale S matches with the ground scale as an input (the query's map drawn S times larger for every tile, as
 refiner.query_extent_m does for tiles of one extent); 0 (the default) without it. --kernel-frac and --context are
 refiner.kernel_frac (the share of the query map's side matched) and refiner.context (extra dilated blocks in each
 encoder); the query's time includes reading each tile's answer (its position and mass within 5 m) with
---peak-smoothing (refiner.peak_smoothing). experiment=refine_vigor is --widths 32 --sides 128 --bins 1
---kernel-frac 1.0 --context 1 --peak-smoothing 0.04."""
+--peak-smoothing (refiner.peak_smoothing); --cpu-precision bf16 encodes under bfloat16 autocast, as a checkpoint
+trained with trainer.cpu_precision=bf16 is evaluated and served on the CPU (the matching stays float32).
+experiment=refine_vigor is --widths 32 --sides 128 --bins 1 --kernel-frac 1.0 --context 1 --peak-smoothing 0.04
+--cpu-precision bf16."""
 
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ import time
 import torch
 
 from geoloc import registry
+from geoloc.engine.device import autocast
 import geoloc.models.refiners  # noqa: F401
 
 
@@ -48,6 +52,7 @@ def main() -> None:
     parser.add_argument("--kernel-frac", type=float, default=0.5, help="refiner.kernel_frac")
     parser.add_argument("--context", type=int, default=0, help="refiner.context")
     parser.add_argument("--peak-smoothing", type=float, default=0.0, help="refiner.peak_smoothing")
+    parser.add_argument("--cpu-precision", default="32", choices=["32", "bf16"], help="trainer.cpu_precision")
     args = parser.parse_args()
     scale = torch.full((args.tiles,), args.query_scale) if args.query_scale else None
     extent = torch.full((args.tiles, 2), 72.96)  # metres: the synthetic VIGOR tile
@@ -59,21 +64,28 @@ def main() -> None:
                                              "overlap": args.overlap, "kernel_frac": args.kernel_frac,
                                              "context": args.context}).eval()
         query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
+
+        def encoded_query():
+            with autocast("32", torch.device("cpu"), args.cpu_precision):
+                return refiner.encode_query(query).float()
+
+        def encoded_tiles():
+            with autocast("32", torch.device("cpu"), args.cpu_precision):
+                return refiner.encode_reference(tiles).float()
+
         for bins in args.bins:
             headings = torch.arange(bins) * (360.0 / bins)
 
             @torch.no_grad()
             def whole():
-                maps = refiner.encode_query(query)
-                out = refiner.match(maps.expand(args.tiles, -1, -1, -1), refiner.encode_reference(tiles), headings,
-                                    scale)
+                out = refiner.match(encoded_query().expand(args.tiles, -1, -1, -1), encoded_tiles(), headings, scale)
                 out.position(args.peak_smoothing)
                 out.mass_within(5.0, extent, args.peak_smoothing)
 
             with torch.no_grad():
-                encoded = refiner.encode_reference(tiles)
-                maps = refiner.encode_query(query).expand(args.tiles, -1, -1, -1)
-                tile_ms = median_ms(lambda: refiner.encode_reference(tiles), args.repeats)
+                encoded = encoded_tiles()
+                maps = encoded_query().expand(args.tiles, -1, -1, -1)
+                tile_ms = median_ms(encoded_tiles, args.repeats)
                 match_ms = median_ms(lambda: refiner.match(maps, encoded, headings, scale), args.repeats)
             print(f"| {width} | {side} | {bins} | {median_ms(whole, args.repeats):.1f} | {tile_ms:.1f} | "
                   f"{match_ms:.1f} |", flush=True)

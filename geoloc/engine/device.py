@@ -46,18 +46,21 @@ def resolve_device(device: str | None = None) -> torch.device:
     return chosen
 
 
-def amp_dtype(precision: str, device: torch.device) -> torch.dtype | None:
-    """The autocast dtype of trainer.precision ("32" | "bf16" | "16") on `device`: None (no autocast) for "32" and
-    on the CPU, where geoloc computes in float32 whatever the run's precision."""
+def amp_dtype(precision: str, device: torch.device, cpu_precision: str = "32") -> torch.dtype | None:
+    """The autocast dtype on `device`: trainer.precision ("32" | "bf16" | "16") on CUDA, trainer.cpu_precision
+    ("32" | "bf16") on the CPU; None (no autocast) for "32". The CPU's is a key of its own, off by default, so a
+    recipe that asks for bf16 on the GPU keeps its CPU figures those of float32."""
+    if device.type == "cpu":
+        return torch.bfloat16 if cpu_precision == "bf16" else None
     if device.type != "cuda" or precision == "32":
         return None
     return torch.bfloat16 if precision == "bf16" else torch.float16
 
 
-def autocast(precision: str, device: torch.device):
+def autocast(precision: str, device: torch.device, cpu_precision: str = "32"):
     """The run's autocast context on `device` (a no-op where amp_dtype is None): training, validation, evaluate.py
     and the apps compute alike."""
-    dtype = amp_dtype(precision, device)
+    dtype = amp_dtype(precision, device, cpu_precision)
     return contextlib.nullcontext() if dtype is None else torch.autocast(device.type, dtype=dtype)
 
 

@@ -34,7 +34,8 @@ from geoloc.engine.task import Task
 class TrainerConfig:
     max_epochs: int = 100
     val_every_n_epochs: int = 1
-    precision: str = "32"  # "32" | "bf16" | "16"; AMP applies on CUDA only
+    precision: str = "32"  # "32" | "bf16" | "16": the autocast on CUDA
+    cpu_precision: str = "32"  # "32" | "bf16": the autocast on the CPU (off by default: float32 figures)
     grad_clip: float = 0.0  # max global grad norm; 0 = off
     accumulate: int = 1
     num_workers: int = 4
@@ -59,6 +60,8 @@ class TrainerConfig:
             raise ValueError(f"trainer.val_every_n_epochs must be >= 1, got {self.val_every_n_epochs}")
         if self.precision not in ("32", "bf16", "16"):
             raise ValueError(f"trainer.precision must be one of '32', 'bf16', '16', got {self.precision!r}")
+        if self.cpu_precision not in ("32", "bf16"):
+            raise ValueError(f"trainer.cpu_precision must be '32' or 'bf16', got {self.cpu_precision!r}")
         if self.accumulate < 1:
             raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
         check_device_name(self.device, "trainer.device")
@@ -135,7 +138,7 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.config_yaml = config_yaml
         self.device = dist.init_from_env(cfg.device)
-        self.amp_dtype = amp_dtype(cfg.precision, self.device)
+        self.amp_dtype = amp_dtype(cfg.precision, self.device, cfg.cpu_precision)
         # trainer.channels_last / trainer.compile resolved for this device ("auto": on for CUDA only)
         self.channels_last = on_for_cuda(cfg.channels_last, self.device)
         self.compile = on_for_cuda(cfg.compile, self.device)
@@ -153,7 +156,7 @@ class Trainer:
 
     # ---- helpers -------------------------------------------------------------------------------------------
     def autocast(self):
-        return autocast(self.cfg.precision, self.device)
+        return autocast(self.cfg.precision, self.device, self.cfg.cpu_precision)
 
     def check_finite(self, loss: torch.Tensor) -> None:
         if not torch.isfinite(loss.detach()).all():

@@ -107,7 +107,8 @@ class CrossViewEvaluation:
     job: EvaluateKeys  # ckpt, metrics_out, device, num_workers, progress
     gallery: GalleryConfig
     run_dir: str | None = None
-    precision: str = "32"  # the run's trainer.precision: its autocast applies on CUDA, as in training's validation
+    precision: str = "32"  # the run's trainer.precision: its autocast on CUDA, as in training's validation
+    cpu_precision: str = "32"  # the run's trainer.cpu_precision: its autocast on the CPU
 
     @property
     def batch_size(self) -> int:
@@ -161,7 +162,8 @@ def parse_evaluation(cfg: DictConfig, stored: DictConfig) -> CrossViewEvaluation
     return CrossViewEvaluation(data=data, reader=reader, model=model, components=components,
                                job=top_level(cfg, EvaluateKeys, "evaluate.py"), gallery=gallery,
                                run_dir=OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False),
-                               precision=str(OmegaConf.select(stored, "trainer.precision", default="32")))
+                               precision=str(OmegaConf.select(stored, "trainer.precision", default="32")),
+                               cpu_precision=str(OmegaConf.select(stored, "trainer.cpu_precision", default="32")))
 
 
 def evaluated_dataset(stored: DictConfig | dict, requested: DictConfig | dict | None) -> dict:

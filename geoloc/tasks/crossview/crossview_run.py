@@ -147,9 +147,9 @@ def score(run: CrossViewEvaluation, task: CrossViewTask, eval_data: EvalData | N
 
 def evaluation_trainer(run: CrossViewEvaluation) -> Trainer:
     """The engine an evaluation scores with (evaluate.py, geoloc bench): its device, workers and progress bar, and
-    the run's autocast on CUDA; it trains nothing."""
+    the run's autocast (trainer.precision on CUDA, trainer.cpu_precision on the CPU); it trains nothing."""
     return Trainer(TrainerConfig(device=run.job.device, num_workers=run.job.num_workers, progress=run.job.progress,
-                                 precision=run.precision), run_dir=run.run_dir or ".")
+                                 precision=run.precision, cpu_precision=run.cpu_precision), run_dir=run.run_dir or ".")
 
 
 def stored_config(state: dict) -> DictConfig:

@@ -50,8 +50,9 @@ class CrossViewEncoder:
         self.config, (self.data, self._reader) = config, parse_dataset(config.dataset)
         self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
         self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
-        # the run's trainer.precision: its autocast applies on CUDA (as in training's validation), not on the CPU
+        # the run's autocast, as in training's validation: trainer.precision on CUDA, trainer.cpu_precision on the CPU
         self.precision = str(OmegaConf.select(config, "trainer.precision", default="32"))
+        self.cpu_precision = str(OmegaConf.select(config, "trainer.cpu_precision", default="32"))
 
     @classmethod
     def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":
@@ -154,16 +155,20 @@ class CrossViewEncoder:
         (geoloc.data.io.read_rgb(path, decode_size(self.data, "aerial"))) gives the gallery's input exactly."""
         return to_tensor(align_reference(tile, self.data))[None]
 
+    def autocast(self):
+        """The run's autocast on this encoder's device (engine.device.autocast), as training's validation used."""
+        return autocast(self.precision, self.device, self.cpu_precision)
+
     @torch.no_grad()
     def encode_street(self, inputs: torch.Tensor) -> torch.Tensor:
         """B×3×H×W query-branch inputs -> B×dim float32 descriptors on the encoder's device."""
-        with autocast(self.precision, self.device):
+        with self.autocast():
             return self.model.query(inputs.to(self.device)).float()
 
     @torch.no_grad()
     def encode_aerial(self, inputs: torch.Tensor) -> torch.Tensor:
         """B×3×H×W reference-branch inputs -> B×dim float32 descriptors on the encoder's device."""
-        with autocast(self.precision, self.device):
+        with self.autocast():
             return self.model.reference(inputs.to(self.device)).float()
 
     # ---- refinement inside a tile ------------------------------------------------------------------------------
@@ -197,7 +202,8 @@ class CrossViewEncoder:
         if self.refiner is None:
             raise ConfigError(f"{self.source} has no refiner: train one (docs/localisation.md)")
         extent = np.asarray(extent_m, np.float64).reshape(-1, 2)
-        maps = self.refiner.encode_query(query.to(self.device))
+        with self.autocast():  # the maps as validation encodes them, matched in float32
+            maps = self.refiner.encode_query(query.to(self.device)).float()
         candidates = self.refine_config.candidates(getattr(self.refiner, "heading_bins", 36))
         scales = self.refine_config.query_scale(extent)
         groups = ([(None, np.arange(len(extent)))] if scales is None else
@@ -211,7 +217,9 @@ class CrossViewEncoder:
                 if any(image is None for image in tiles):
                     return None
                 inputs = torch.stack([self.refine_tile(image) for image in tiles])
-                found = matched(self.refiner.encode_reference(inputs.to(self.device)))
+                with self.autocast():
+                    reference_maps = self.refiner.encode_reference(inputs.to(self.device)).float()
+                found = matched(reference_maps)
                 metres = torch.as_tensor(extent[part], dtype=torch.float32, device=self.device)
                 position, mass = read_answer(found, self.refine_config, radius_m, metres)
                 answer = {"offset_m": offset_m(position.cpu().double().numpy(), extent[part]),

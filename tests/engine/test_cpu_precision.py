@@ -1,0 +1,60 @@
+"""trainer.cpu_precision: the autocast on the CPU, a key of its own (trainer.precision stays CUDA's), taken by the
+training step, evaluate.py and the apps alike from the run's stored config."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from geoloc.config import ConfigError, checked
+from geoloc.engine import Trainer, TrainerConfig
+from geoloc.engine.device import amp_dtype
+from geoloc.launch import run
+from geoloc.tasks.crossview.crossview_config import parse_evaluation
+from geoloc.tasks.crossview.crossview_run import evaluation_trainer, stored_config
+from geoloc.engine import checkpoint as ckpt_io
+from geoloc.tasks.crossview.encoder import CrossViewEncoder
+
+from conftest import TINY, compose_evaluate, compose_train, write_cvusa
+from test_trainer import config
+
+CPU, CUDA = torch.device("cpu"), torch.device("cuda")
+
+
+def test_each_device_reads_its_own_key():
+    assert amp_dtype("32", CPU, "bf16") == torch.bfloat16
+    assert amp_dtype("bf16", CPU) is None and amp_dtype("16", CPU, "32") is None  # a GPU recipe's bf16: not here
+    assert amp_dtype("32", CUDA, "bf16") is None and amp_dtype("bf16", CUDA, "32") == torch.bfloat16
+    assert TrainerConfig().cpu_precision == "32"
+
+
+@pytest.mark.parametrize("value", ["16", "fp32", "bf16-cpu"])
+def test_a_cpu_precision_other_than_32_or_bf16_is_refused(value):
+    with pytest.raises(ConfigError, match="trainer.cpu_precision must be '32' or 'bf16'"):
+        checked({"cpu_precision": value}, TrainerConfig, "trainer")
+
+
+def test_the_training_step_computes_in_bf16_only_when_asked(tmp_path):
+    layer, x = torch.nn.Linear(4, 4), torch.randn(2, 4)
+    for precision, dtype in (("32", torch.float32), ("bf16", torch.bfloat16)):
+        with Trainer(config(cpu_precision=precision), tmp_path / precision).autocast():
+            assert layer(x).dtype == dtype, precision
+
+
+def test_evaluation_and_the_apps_compute_as_the_run_trained(tmp_path):
+    root = write_cvusa(tmp_path / "cvusa", n_train=8, n_val=4)
+    ckpt = tmp_path / "run" / "last.pt"
+    run.train(compose_train([*TINY, f"dataset.root={root}", f"run_dir={ckpt.parent}", "trainer.max_epochs=1",
+                             "trainer.cpu_precision=bf16"]))
+    stored = stored_config(ckpt_io.load(ckpt))
+    evaluation = parse_evaluation(compose_evaluate([f"ckpt={ckpt}", "device=cpu"]), stored)
+    assert evaluation.cpu_precision == "bf16" and evaluation_trainer(evaluation).amp_dtype == torch.bfloat16
+
+    encoder = CrossViewEncoder.load(ckpt, device="cpu")
+    street = torch.rand(2, 3, 16, 64)
+    with torch.no_grad():
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            as_trained = encoder.model.query(street).float()
+        in_float32 = encoder.model.query(street)
+    served = encoder.encode_street(street)
+    assert served.dtype == torch.float32 and torch.equal(served, as_trained)
+    assert not torch.equal(served, in_float32)  # the comparison can tell the two apart

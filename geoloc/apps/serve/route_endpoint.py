@@ -93,7 +93,7 @@ def named_tiles(places, results) -> list[dict]:
     """The gallery tiles that `results` (the frames' answers) name in their top-k, each row once in the order first
     named: {"row", its centre (`places.kind`'s keys), "extent_m": the [height, width] metres it covers, or None in
     a gallery without ground extents (CVUSA's, CVACT's)}."""
-    from geoloc.gallery.places import POSITION_KEYS  # on use, as add_route imports: importing this module loads no torch
+    from geoloc.gallery.places import POSITION_KEYS  # on use, as add_route imports: importing this loads no torch
 
     keys, extent = POSITION_KEYS[places.kind], places.reference_extent_m
     rows = dict.fromkeys(int(hit["row"]) for result in results for hit in result.topk)

@@ -37,14 +37,19 @@ def tiled(tmp_path):
 def test_the_page_and_its_script_are_served_with_a_strict_policy(tiled):
     page = tiled.get("/")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
-    assert '<script src="/page.js"></script>' in page.text and "<script>" not in page.text  # no inline script
+    assert "<script>" not in page.text  # no inline script
+    # route.js after page.js, whose helpers it uses
+    assert page.text.index('<script src="/page.js"></script>') < page.text.index('<script src="/route.js"></script>')
     policy = page.headers["content-security-policy"]
     assert "script-src 'self'" in policy and "default-src 'none'" in policy and "http" not in policy
-    script = tiled.get("/page.js")
-    assert script.status_code == 200 and script.headers["content-type"].startswith("text/javascript")
-    assert script.text == (STATIC / "page.js").read_text()
+    for name in ("page.js", "route.js"):
+        script = tiled.get(f"/{name}")
+        assert script.status_code == 200 and script.headers["content-type"].startswith("text/javascript")
+        assert script.headers["content-security-policy"] == policy
+        assert script.text == (STATIC / name).read_text()
+    assert tiled.get("/app.js").status_code == 404 and tiled.get("/..%2Fpage.py.js").status_code == 404
     # nothing from another host, and nothing an answer holds is ever parsed as HTML
-    for name in ("index.html", "page.js"):
+    for name in ("index.html", "page.js", "route.js"):
         source = (STATIC / name).read_text()
         assert not re.search(r"https?://", source), name
         assert not re.search(r"innerHTML|outerHTML|insertAdjacentHTML|document\.write|eval\(", source), name

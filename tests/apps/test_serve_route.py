@@ -34,11 +34,10 @@ class Result:
 class RouteLocalizer:
     """Answers a frame by its mean brightness: frame b's top-3 are the tiles b, b + 1, b + 2 (scores falling)."""
 
-    def __init__(self, places=True):
+    def __init__(self, places=True, extent=np.full((len(TILES), 2), 70.0)):
         self.limits, self.calls = QueryLimits(), 0
-        if places:
-            self.places = types.SimpleNamespace(kind="xy", reference_positions=TILES,
-                                                reference_extent_m=np.full((len(TILES), 2), 70.0))
+        if places:  # what route_plane and named_tiles read of a gallery's places
+            self.places = types.SimpleNamespace(kind="xy", reference_positions=TILES, reference_extent_m=extent)
 
     def parse(self, **given):
         return check_settings(**given, max_topk=self.limits.max_topk)
@@ -81,6 +80,21 @@ def test_a_route_request_answers_each_frame_and_fuses_them_as_localize_py_does()
     expected = fused(route_plane(localizer.places, config), ["f0.png", "f1.png", "f2.png"], results,
                      parse_odometry(odometry.encode(), "odometry.csv"), config).lines
     assert body["frames"] == expected
+
+
+@pytest.mark.parametrize("extent", [np.array([[60.0 + r, 70.0 + r] for r in range(len(TILES))]), None])
+def test_a_route_answer_names_the_tiles_its_frames_answered_with_their_centres_and_extents(extent):
+    client = TestClient(create_app(RouteLocalizer(extent=extent), route=FilterConfig(particles=300)))
+    response = post(client, [5, 6, 5], odometry_text([0.0, 10.0, 10.0], [0.0, 0.0, 0.0]))
+    assert response.status_code == 200, response.text
+    body = response.json()
+    # each distinct row of the answers' top-k once, in the order first named: frame 5's 5, 6, 7, then frame 6's 8
+    rows = [5, 6, 7, 8]
+    assert [t["row"] for t in body["tiles"]] == rows == list(dict.fromkeys(
+        hit["row"] for answer in body["answers"] for hit in answer["topk"]))
+    for tile, row in zip(body["tiles"], rows):
+        assert tile == {"row": row, "x_m": TILES[row][0], "y_m": TILES[row][1],
+                        "extent_m": None if extent is None else [60.0 + row, 70.0 + row]}
 
 
 @pytest.mark.parametrize("case, status, words", [

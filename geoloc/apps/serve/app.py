@@ -3,8 +3,8 @@
     app = create_app(Localizer.load(ckpt, gallery))   # the model and the gallery are loaded once, by the caller
     uvicorn.run(app)                                   # or: geoloc serve ckpt=... gallery=DIR
 
-GET / -> the page (static/index.html + page.js: drop a street image, see the answer); GET /tiles/{row} -> the
-gallery's tile image of that row (what the page shows of the top-k)
+GET / -> the page (static/index.html + page.js: drop a street image, see the answer; route.js: play a route's
+track); GET /tiles/{row} -> the gallery's tile image of that row (what the page shows of the top-k)
 GET /health -> {"status": "ok", **localizer.info()}
 POST /localize, multipart/form-data: file field `image`; `fov` (degrees, (0, 360], default 360: a panorama),
 `topk` (1 to max_topk, default 5), `heading` (degrees clockwise from north when known, or `search`; default: as

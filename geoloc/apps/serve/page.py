@@ -1,15 +1,17 @@
-"""The service's page: GET / (static/index.html), GET /page.js, and GET /tiles/{row}, a gallery tile's image.
+"""The service's page: GET / (static/index.html), its scripts GET /page.js and GET /route.js, and GET /tiles/{row},
+a gallery tile's image.
 
-The page is plain HTML and JavaScript, no build step and nothing fetched from elsewhere: it posts the dropped image
-to /localize and draws the answer with textContent and DOM nodes only, so nothing in an answer or a file name is
-read as markup. Its Content-Security-Policy lets it load scripts and images from this service only.
+The page is plain HTML and JavaScript, no build step and nothing fetched from elsewhere: page.js posts the dropped
+image to /localize, route.js a route's frames and odometry to /localize/route (and plays the track on a map of the
+tiles), and both draw the answer with textContent, DOM nodes and a canvas only, so nothing in an answer or a file
+name is read as markup. Its Content-Security-Policy lets it load scripts and images from this service only.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import FastAPI, HTTPException
 from fastapi.responses import FileResponse, Response
 
 from geoloc.apps.query import QueryError
@@ -20,6 +22,7 @@ PAGE_HEADERS = {"Content-Security-Policy": "default-src 'none'; script-src 'self
                                           "img-src 'self' blob:; style-src 'self' 'unsafe-inline'; "
                                           "base-uri 'none'; form-action 'none'; frame-ancestors 'none'"}
 IMAGE_TYPES = {".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".png": "image/png"}
+SCRIPTS = ("page", "route")  # static/NAME.js, served at /NAME.js
 
 
 def add_page(app: FastAPI, localizer) -> None:
@@ -30,9 +33,12 @@ def add_page(app: FastAPI, localizer) -> None:
         return Response((STATIC / "index.html").read_bytes(), media_type="text/html; charset=utf-8",
                         headers=PAGE_HEADERS)
 
-    @app.get("/page.js", include_in_schema=False)
-    async def script() -> Response:
-        return Response((STATIC / "page.js").read_bytes(), media_type="text/javascript; charset=utf-8",
+    @app.get("/{name}.js", include_in_schema=False)
+    async def script(name: str) -> Response:
+        if name not in SCRIPTS:
+            raise HTTPException(404, f"no script /{name[:40]}.js: the page's scripts are "
+                                     f"{', '.join(f'/{n}.js' for n in SCRIPTS)}")
+        return Response((STATIC / f"{name}.js").read_bytes(), media_type="text/javascript; charset=utf-8",
                         headers=PAGE_HEADERS)
 
     @app.get("/tiles/{row}")

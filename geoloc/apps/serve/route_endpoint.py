@@ -5,7 +5,9 @@ Multipart form: file fields `frames` (one per frame, in route order, repeated) a
 `frame,distance_m,heading_change_deg`, one row per frame), and /localize's settings (fov, topk, heading, ...) as
 form fields or query parameters, each once. -> {"frames": [{"frame": file name, the filtered estimate
 (route.RoutePlane.estimate_json: position, heading_deg, covariance_m2, tracked_mass, region_95_*), "frame_answer":
-the frame's own answer}], "answers": each frame's /localize answer}.
+the frame's own answer}], "answers": each frame's /localize answer, "tiles": the gallery tiles the answers name, for
+a page to draw (named_tiles: each distinct top-k row once, {"row", its centre in the gallery's keys, "extent_m":
+[height, width] metres or null})}.
 
 The bounds are /localize's, for the request as a whole: its body within max_bytes, one turn at the network lasting
 at most max_seconds for all its frames (past it, 503 naming the frame reached), and at most max_frames frames. A
@@ -83,5 +85,17 @@ def add_route(app, localizer, one_at_a_time, max_seconds: float, route_config, w
             except QueryError as err:
                 raise worded(err, where, max_seconds) from None
         body = {"frames": fused(plane, names, results, motion, route_config).lines,
-                "answers": [r.to_json() for r in results]}
+                "answers": [r.to_json() for r in results], "tiles": named_tiles(localizer.places, results)}
         return Response(json.dumps(body, allow_nan=False), media_type="application/json")
+
+
+def named_tiles(places, results) -> list[dict]:
+    """The gallery tiles that `results` (the frames' answers) name in their top-k, each row once in the order first
+    named: {"row", its centre (`places.kind`'s keys), "extent_m": the [height, width] metres it covers, or None in
+    a gallery without ground extents (CVUSA's, CVACT's)}."""
+    from geoloc.gallery.places import POSITION_KEYS  # on use, as add_route imports: importing this loads no torch
+
+    keys, extent = POSITION_KEYS[places.kind], places.reference_extent_m
+    rows = dict.fromkeys(int(hit["row"]) for result in results for hit in result.topk)
+    return [{"row": row, **dict(zip(keys, map(float, places.reference_positions[row]))),
+             "extent_m": None if extent is None else [float(v) for v in extent[row]]} for row in rows]

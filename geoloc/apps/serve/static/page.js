@@ -1,5 +1,6 @@
 // The geoloc page: posts the dropped image to /localize and shows the answer. Everything shown is set with
 // textContent or as an attribute of a node made here, never parsed as markup, so an answer or a file name stays text.
+// Its helpers ($, setText, fmt, place, appendSettings, send) serve route.js, the route player, too.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
@@ -124,31 +125,42 @@ function showAnswer(answer) {
   setText("status", `answered ${answer.image === null || answer.image === undefined ? "the image" : answer.image}`);
 }
 
+// The settings fields named in `keys` that are not blank, appended to the form `body`
+function appendSettings(body, keys) {
+  for (const key of keys) {
+    const value = $(key).value.trim();
+    if (value !== "") body.append(key, value);
+  }
+}
+
+// POST the form `body` to `path` with `button` disabled meanwhile, then `show(answer)` with its JSON, or `refuse(text)`
+// with the service's 4xx/5xx detail after its status, or why the service could not be reached
+async function send(path, body, button, show, refuse) {
+  $(button).disabled = true;
+  try {
+    const response = await fetch(path, { method: "POST", body });
+    const answer = await response.json().catch(() => ({ detail: `the service answered ${response.status} without JSON` }));
+    if (response.ok) {
+      show(answer);
+    } else {
+      refuse(`${response.status}: ${typeof answer.detail === "string" ? answer.detail : JSON.stringify(answer.detail)}`);
+    }
+  } catch (err) {
+    refuse(`the service could not be reached: ${err}`);
+  } finally {
+    $(button).disabled = false;
+  }
+}
+
 async function localize(event) {
   event.preventDefault();
   if (!chosen) { showError(refusal); return; }
   setText("error", "");
   const body = new FormData();
   body.append("image", chosen, chosen.name);
-  for (const key of ["fov", "topk", "heading", "heading_prior", "abstain"]) {
-    const value = $(key).value.trim();
-    if (value !== "") body.append(key, value);
-  }
+  appendSettings(body, ["fov", "topk", "heading", "heading_prior", "abstain"]);
   setText("status", "localizing ...");
-  $("submit").disabled = true;
-  try {
-    const response = await fetch("/localize", { method: "POST", body });
-    const answer = await response.json().catch(() => ({ detail: `the service answered ${response.status} without JSON` }));
-    if (!response.ok) {
-      showError(`${response.status}: ${typeof answer.detail === "string" ? answer.detail : JSON.stringify(answer.detail)}`);
-      return;
-    }
-    showAnswer(answer);
-  } catch (err) {
-    showError(`the service could not be reached: ${err}`);
-  } finally {
-    $("submit").disabled = false;
-  }
+  await send("/localize", body, "submit", showAnswer, showError);
 }
 
 const drop = $("drop");

@@ -50,17 +50,18 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
     a = np.deg2rad(np.asarray(az_deg, np.float64))
     ux, uy = np.sin(a).astype(np.float32), np.cos(a).astype(np.float32)
     d32 = dists.astype(np.float32)
-    idx = _cells(world, cx + ux[:, None] * d32[None], cy + uy[:, None] * d32[None]).ravel()
+    # Samples are laid out K x W (sample-major), so the running max runs down contiguous rows.
+    idx = _cells(world, cx + d32[:, None] * ux[None], cy + d32[:, None] * uy[None]).ravel()
     hflat = world.height.ravel()
     h = hflat[idx]
-    t = np.maximum.accumulate((h.reshape(W, K) - cz) / d32[None], axis=1)
+    t = np.maximum.accumulate((h.reshape(K, W) - cz) / d32[:, None], axis=0)
     col = np.tile(np.arange(W, dtype=np.int64), H)
     if tan_el.shape[1] == 1 and np.all(np.diff(tan_el[:, 0]) < 0):
         k = _first_hits_shared_rows(t, tan_el[:, 0].astype(np.float32)).ravel()
     else:
         # Integer keys: column in the high bits, tan(elevation) in 1/4096 steps in the low bits.
         band = np.int64(1 << 20)
-        keys = (np.clip(t, -_BAND, _BAND) * 4096).astype(np.int64) + (np.arange(W, dtype=np.int64) * band)[:, None]
+        keys = (np.clip(t.T, -_BAND, _BAND) * 4096).astype(np.int64) + (np.arange(W, dtype=np.int64) * band)[:, None]
         q = np.ceil(np.clip(e, -_BAND, _BAND) * 4096).astype(np.int64) + col * band
         k = np.searchsorted(keys.ravel(), q) - col * K
     P = H * W
@@ -71,7 +72,7 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
     hit = np.flatnonzero(k < K)  # the rest see past the world: sky or far haze
     if len(hit):
         albedo, shade, cls, dist = _shade_hits(world, light, (cx, cy, cz), ux, uy, d32, idx, h, k[hit], col[hit],
-                                               e[hit], K)
+                                               e[hit])
         out_albedo[hit], out_shade[hit], out_cls[hit], out_dist[hit] = albedo, shade, cls, dist
     return Hits(out_albedo.reshape(H, W, 3), out_shade.reshape(H, W), out_cls.reshape(H, W),
                 out_dist.reshape(H, W))
@@ -80,20 +81,23 @@ def march(world: World, light: Lighting, cam_xyz, az_deg: np.ndarray, tan_el: np
 def _first_hits_shared_rows(t: np.ndarray, e: np.ndarray) -> np.ndarray:
     """Panorama case: every column has the same row elevations e (H,), strictly falling down the rows.
 
-    Sample k of column j covers the rows at or below c_jk = #{rows with e > M_jk}; c falls with k, so the first
-    sample hitting row i is #{k : c_jk > i}: a histogram of c per column and a cumulative sum. -> k (H, W).
+    t: the running max M (K, W). Sample k of column j covers the rows at or below c_kj = #{rows with e > M_kj}; c
+    falls with k, so the first sample hitting row i is #{k : c_kj > i}: a histogram of c per column and a
+    cumulative sum down the rows. -> k (H, W).
     """
-    W, K = t.shape
+    K, W = t.shape
     H = len(e)
-    c = np.searchsorted(-e, -t.ravel(), side="left")  # W*K queries into only H values
-    hist = np.bincount(np.repeat(np.arange(W) * (H + 1), K) + c, minlength=W * (H + 1)).reshape(W, H + 1)
-    return (K - np.cumsum(hist, axis=1)[:, :H]).T
+    c = np.searchsorted(-e, -t, side="left")  # K*W queries into only H values
+    c *= W
+    c += np.arange(W)
+    hist = np.bincount(c.ravel(), minlength=(H + 1) * W).reshape(H + 1, W)
+    return K - np.cumsum(hist[:H], axis=0)
 
 
-def _shade_hits(world, light, cam, ux, uy, d32, idx, h, k, col, e, K):
+def _shade_hits(world, light, cam, ux, uy, d32, idx, h, k, col, e):
     """Surface, class, albedo and shading at each hit sample k of column col (1-D arrays over hit pixels)."""
     cx, cy, cz = cam
-    s = col * K + k
+    s = k * len(ux) + col  # samples are K x W
     cell = idx[s]
     h_hit = h[s]
     d_hit = d32[k]

@@ -36,12 +36,13 @@ class World:
     @classmethod
     def empty(cls, extent: float, cell: float, ground_rgb, ground_cls: int = 0) -> "World":
         n = int(round(extent / cell))
+        row = np.tile(np.asarray(ground_rgb, np.uint8), n)  # tiling a contiguous row beats a broadcast copy
         return cls(
             cell=cell,
             height=np.zeros((n, n), np.float32),
             cls=np.full((n, n), ground_cls, np.uint8),
-            top=np.broadcast_to(np.asarray(ground_rgb, np.uint8), (n, n, 3)).copy(),
-            wall=np.broadcast_to(np.asarray(ground_rgb, np.uint8), (n, n, 3)).copy(),
+            top=np.tile(row, n).reshape(n, n, 3),
+            wall=np.tile(row, n).reshape(n, n, 3),
         )
 
     @property

@@ -26,10 +26,14 @@ class Road:
         return self.lanes * self.lane_w / 2
 
     def frames(self):
-        """Per point: position, unit tangent, unit left normal (all K x 2)."""
-        d = np.gradient(self.pts, axis=0)
-        t = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-        return self.pts, t, np.stack([-t[:, 1], t[:, 0]], 1)
+        """Per point: position, unit tangent, unit left normal (all K x 2). Kept while `pts` is the same array:
+        a place asks for them about ten times per road."""
+        kept = self.__dict__.get("_frames")
+        if kept is None or kept[0] is not self.pts:
+            d = np.gradient(self.pts, axis=0)
+            t = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+            kept = self._frames = (self.pts, t, np.stack([-t[:, 1], t[:, 0]], 1))
+        return kept
 
 
 def bearing_vec(bearing_deg: float) -> np.ndarray:
@@ -37,12 +41,15 @@ def bearing_vec(bearing_deg: float) -> np.ndarray:
     return np.array([np.sin(a), np.cos(a)])
 
 
+_SIGN_A = np.array([[-1.0], [1.0], [1.0], [-1.0]])  # the corners' sides along and across
+_SIGN_B = np.array([[-1.0], [-1.0], [1.0], [1.0]])
+
+
 def rect(c, bearing: float, length: float, width: float) -> np.ndarray:
     """Corners (4 x 2) of a rectangle centred at c with its long side along the bearing."""
     e1, e2 = bearing_vec(bearing), bearing_vec(bearing + 90)
     c = np.asarray(c, float)
-    return np.array([c + sa * length / 2 * e1 + sb * width / 2 * e2
-                     for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+    return c + _SIGN_A * length / 2 * e1 + _SIGN_B * width / 2 * e2
 
 
 def straight(origin, bearing_deg: float, half_len: float) -> np.ndarray:

@@ -5,6 +5,7 @@ on the number of workers or on which samples were generated before it.
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from . import traffic as T
@@ -42,10 +43,8 @@ def _texture(world, rng) -> None:
     """Per-cell brightness noise so large surfaces are not flat colour (+-5 levels on tops, +-2 on walls)."""
     noise = noise_patch(rng, world.height.shape)
     for arr, amp in ((world.top, 5.0), (world.wall, 2.0)):
-        t = arr.astype(np.int16)
-        t += (noise * np.float32(amp)).astype(np.int16)[..., None]
-        np.clip(t, 0, 255, out=t)
-        arr[...] = t
+        d = (noise * np.float32(amp)).astype(np.int16)
+        cv2.add(arr, cv2.merge([d, d, d]), dst=arr, dtype=cv2.CV_8U)  # integer sum saturated to 0..255
 
 
 def street_traffic(rng, place: Place, extent, aerial_agents, change: float, keep, radius, density):

@@ -112,6 +112,7 @@ def field(world: World, rng, c, bearing: float, length: float, width: float, row
         e1, e2, length, width = e2, e1, width, length
     c = np.asarray(c, float)
     spacing = rng.uniform(2.0, 4.0)
-    rows = [np.stack([c + s * e2 - (length / 2 - 0.5) * e1, c + s * e2 + (length / 2 - 0.5) * e1])
-            for s in np.arange(-width / 2 + spacing / 2, width / 2 - 0.5, spacing)]
+    mid = c + np.arange(-width / 2 + spacing / 2, width / 2 - 0.5, spacing)[:, None] * e2
+    half = (length / 2 - 0.5) * e1
+    rows = np.stack([mid - half, mid + half], 1)  # R x 2 x 2: one segment per crop row
     world.draw_polylines(rows, max(0.6, world.cell), VEGETATION, dark)

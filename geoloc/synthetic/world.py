@@ -100,9 +100,12 @@ class World:
         """Many strips of one material in one cv2 call per layer (dashes, zebra stripes, crop rows)."""
         if not len(lines):
             return
-        lines = [np.asarray(xy, float) for xy in lines]
-        allpts = self._pts(np.concatenate(lines))
-        pts = np.split(allpts, np.cumsum([len(xy) for xy in lines])[:-1])
+        if isinstance(lines, np.ndarray) and lines.ndim == 3:  # equal-length lines in one array
+            pts = list(self._pts(lines.reshape(-1, 2)).reshape(lines.shape[0], -1, 2))
+        else:
+            lines = [np.asarray(xy, float) for xy in lines]
+            allpts = self._pts(np.concatenate(lines))
+            pts = np.split(allpts, np.cumsum([len(xy) for xy in lines])[:-1])
         thick = max(1, int(round(width / self.cell)))
         col = tuple(int(v) for v in rgb)
         cv2.polylines(self.cls, pts, False, int(cls), thick, cv2.LINE_8, _SHIFT)

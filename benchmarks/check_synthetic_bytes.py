@@ -7,7 +7,6 @@ dynamic: places) by this checkout and by the one at --ref, each in a subprocess 
 files are compared. Exits 1 on any difference. A speed-up of the renderer must pass this against the code before it.
 """
 import argparse
-import hashlib
 import json
 import os
 import subprocess

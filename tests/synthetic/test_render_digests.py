@@ -1,51 +1,63 @@
-"""The renderer's exact bytes: sha256 of a few files of each layout at its tiny preset (seed 3, one train and one val
-sample), recorded before the renderer was made faster. A speed-up must leave them as they are: the default run's
-figures rest on the same images. The JPEG / PNG bytes also depend on the OpenCV build's codecs; should an OpenCV
-upgrade alone change them, check every layout with benchmarks/check_synthetic_bytes.py against the old code first.
+"""The renderer's exact output: sha256 of a few rendered images of each layout at its tiny preset (seed 3, one train
+and one val sample), taken as the arrays handed to the codec (their shape, dtype, format and quality with their
+pixels), and of the text files beside them. They were recorded with the renderer before it was made faster; a
+speed-up must leave them as they are, since the default run's figures rest on the same images. Digests of the
+arrays, not of the files, so that a new OpenCV build's JPEG / PNG encoder does not fail the test
+(benchmarks/check_synthetic_bytes.py compares whole files with another checkout's on the same machine).
 """
 import hashlib
 
+import numpy as np
 import pytest
+import geoloc.synthetic.layouts as LY
 from geoloc.synthetic import generate
 
 PRESETS = {"cvusa": "tiny", "cvact": "tiny", "dynamic": "dynamic_tiny", "vigor": "vigor_tiny", "u1652": "u1652_tiny"}
 DIGESTS = {
+    "cvact": {
+        "ANU_data_small/streetview/synthetic_000000000002_grdView.jpg":
+            "a54135d04f0bbbb2827a6d72f26143a1d0804d824b5b0e51f67d436479e7a59d",
+        "ANU_data_small/satview_polish/synthetic_000000000002_satView_polish.jpg":
+            "c1128872b607a73310c8e40d03d8a4444b0b2957f552a00f2a07eb1fb08754d8",
+    },
     "cvusa": {
-        "bingmap/19/0000002.jpg": "9159aa4e045ce4192d1dcd0d072cbd758f28810c4341b8208047610b7c1230bd",
-        "streetview/panos/0000002.jpg": "2619c80014561f02b207f32443579be4dff0df71c9ed9808eed6756bfbc519fb",
-        "streetview/annotations/0000002.png": "582d38ac2e437f46b63f8cbfe9052934bd7ecca83250c8343027c1c6a3c1fd0d",
+        "bingmap/19/0000002.jpg": "c1128872b607a73310c8e40d03d8a4444b0b2957f552a00f2a07eb1fb08754d8",
+        "streetview/panos/0000002.jpg": "9504bee46803b15281b96eb20f97762012e990e54ec6e928d88383d6680d5189",
+        "streetview/annotations/0000002.png": "0108b2627ae0e2099463dc6deef5f1cf4e93c9e5c954b72f05509c48d7ae28d8",
         "splits/val-19zl.csv": "b5f39791bc7189fe72aee188ac8a2fe0413186db7dbb508c2a0b18654918d126",
         "positions.csv": "7e9be4aa75ab9e93e6d9ba7ababe53e338cca6dd59de563f65dd58b210d706c8",
     },
-    "cvact": {
-        "ANU_data_small/streetview/synthetic_000000000002_grdView.jpg":
-            "4e7f8cf2022ec3babe1be98e32432e6a83223561bde045a0024a2424297aa3bf",
-        "ACT_data.mat": "82922f52b53ef462e33d21cb1850c1b82b842ff99f7f863ed6c9c2d5ae91bc89",
-    },
     "dynamic": {
-        "rgb_dynamic/0000003.png": "f9a00e2ce64a198d230eb0921dbc1810fee156161fc2caa0ede89d09ef2a86b5",
-        "rgb_static/0000003.png": "1294413f54cdb59ea9dadf90076bbc3b0d5015c8b933fa9c3226e64100aeb7db",
-        "label_dynamic/0000003.png": "fffec43f54d537ce74bff2d0e1159b491772bbd64492f05d6fa2a92770073814",
-        "mask_dynamic/0000003.png": "d91272c71b0016453493398031991cfd7e4d8933d6345074d56eb103426622ad",
+        "rgb_dynamic/0000003.png": "74f1ba988a71af5d300947677c983a6b042142046800df99ba0f4479f10ee230",
+        "rgb_static/0000003.png": "9ae5a3fab8bd13d370acdf3fd6df773beb7c3c8b06b405a649895d28301d2dd1",
+        "label_dynamic/0000003.png": "7ae853d020099464b5b44db752d6f6cdbfe7a15cc227c6899df4b4d9f2224255",
+        "mask_dynamic/0000003.png": "57e1afbbb25a4c8cbd1c19ae1cc02ef1eae600e7d881e78b1f8609409654df47",
         "splits/val.csv": "38bda3e71ae7d2a078e46fbd1f92ffca2eac8f3844cb6c40b850fc1d7ab598ab",
+    },
+    "u1652": {
+        "test/gallery_drone/0003/image-02.jpeg": "fa0dd0c8aba75f556139c344b7fb092867250d7905c43b221f7f2fa371342016",
+        "test/gallery_satellite/0003/0003.jpg": "5cc85ba94ffe7870783ff736ebc52a12038b92134d8f1033a499e9d6b8d7ecbf",
+        "train/drone/0001/image-03.jpeg": "d54c81de31154844b0d678819d6fbf0225c051bd29917fb03951bb99a2b9ed1c",
     },
     "vigor": {
         "NewYork/panorama/YeKcaHg5gBmpk_Rfo4wS2R,40.757578,-73.985133,.jpg":
-            "93ba2244bdac5e4395d43340d873ff7ab7bb5d6554561f2c4995d0aba0dc61a8",
+            "da11320a4af509e1f0f23d7a89955532965b7f1c38259a896c2c2223f69f9ba9",
         "NewYork/satellite/satellite_40.758_-73.9855.png":
-            "f92cad681a79d82b75b1d92e06f813bd353e08e72428b950701a9ef060cd2bf8",
+            "caee53e00b9c9b4ef1a7f163eab2e0ad1dc96700a4723d4a7862f4f686b6c66f",
         "splits/NewYork/pano_label_balanced.txt": "0c7ced544dd8635b1cea8cae6bb4dfb6b6dd131c234e41944a25e138ed57702d",
-    },
-    "u1652": {
-        "test/gallery_drone/0003/image-02.jpeg": "f13ab86f6573fd2076ae461067fe7434a887992d029643da6ded5082ec6de597",
-        "test/gallery_satellite/0003/0003.jpg": "2b4cf088a756a1012d92be93ba9f70acaa2a064dcfc3d1364c0c4d2c286c62af",
-        "train/drone/0001/image-03.jpeg": "d6b6c8eba33a3994895bd090f774237d1e09f1edd2119f78edba61966eea0085",
     },
 }
 
 
+def array_digest(img: np.ndarray, ext: str, quality: int = 95) -> bytes:
+    """What the test writes in place of an encoded image: the sha256 of the array and how it would be encoded."""
+    header = repr((img.shape, str(img.dtype), ext, int(quality))).encode()
+    return hashlib.sha256(header + np.ascontiguousarray(img).tobytes()).hexdigest().encode()
+
+
 @pytest.mark.parametrize("layout", sorted(DIGESTS))
-def test_rendered_bytes_are_unchanged(layout, tmp_path):
+def test_rendered_images_are_unchanged(layout, tmp_path, monkeypatch):
+    monkeypatch.setattr(LY, "encode", array_digest)
     root = generate(layout, tmp_path / layout, 1, 1, seed=3, preset=PRESETS[layout], progress=False)
     found = {name: hashlib.sha256((root / name).read_bytes()).hexdigest() for name in DIGESTS[layout]}
     assert found == DIGESTS[layout]

@@ -31,6 +31,11 @@ EDGE_FRACTION = 0.1  # a truth this close to an edge, as a share of the tile's s
 E2E_KEYS = KeySet({"e2e_median_m": float("inf"), **{f"e2e_within_{t}m": 0.0 for t in E2E_THRESHOLDS_M}})
 
 
+def near_edge(fractions):
+    """(N,) whether each of (N, 2) tile fractions (numpy or torch) lies within EDGE_FRACTION of an edge: an edge truth."""
+    return ((fractions < EDGE_FRACTION) | (fractions > 1 - EDGE_FRACTION)).any(1)
+
+
 def fine_summary(errors_m) -> dict[str, float]:
     """FINE_KEYS of (Q,) metre errors with the positive tile given; with no error (no query's position in its
     tile is known), every key at its worst."""
@@ -48,7 +53,7 @@ def whole_tile_summary(errors_m, truth_fraction) -> dict[str, float]:
         return dict(WHOLE_TILE_KEYS.worst)
     e = checked_errors(errors_m, "whole-tile errors")
     f = np.asarray(truth_fraction, np.float64)
-    edge = ((f < EDGE_FRACTION) | (f > 1 - EDGE_FRACTION)).any(1)
+    edge = near_edge(f)
     centre = ((f >= 0.25) & (f <= 0.75)).all(1)
     median = lambda part: float(np.median(e[part])) if part.any() else float("nan")  # noqa: E731
     return WHOLE_TILE_KEYS.values({"whole_tile_mean_m": e.mean(), "whole_tile_median_m": np.median(e),

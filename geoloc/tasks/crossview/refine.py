@@ -30,7 +30,7 @@ from geoloc.data.geo import distance_m, offset_to_latlon
 from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import (E2E_KEYS, FINE_HEADING_KEYS, FINE_KEYS, WHOLE_TILE_KEYS, e2e_summary,
-                                    fine_summary, heading_summary, whole_tile_summary)
+                                    fine_summary, heading_summary, near_edge, whole_tile_summary)
 from geoloc.eval.scoring import top_k
 from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, to_tensor
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
@@ -60,6 +60,9 @@ class RefineConfig:
     # tile's side (0.05: 3.6 m on a 73 m tile): the point with the most probability around it, which a narrow
     # spurious peak does not win; 0: the single most probable point, as the first refiners answered
     peak_smoothing: float = 0.0
+    # the weight of a training truth near the tile's edge (fine_error.near_edge: within 0.1 of an edge) in the
+    # refiner's loss, beside 1 for the others; 1: every truth alike
+    edge_weight: float = 1.0
 
     def __post_init__(self):
         if self.stage not in STAGES:
@@ -72,9 +75,19 @@ class RefineConfig:
         if not (np.isfinite(self.query_extent_m) and self.query_extent_m >= 0):
             raise ValueError(f"refiner.query_extent_m must be a number of metres >= 0 (0: no scale input), got "
                              f"{self.query_extent_m}")
+        if not (np.isfinite(self.edge_weight) and self.edge_weight > 0):
+            raise ValueError(f"refiner.edge_weight must be a weight > 0 (1: every truth alike), got {self.edge_weight}")
         if not 0.0 <= self.peak_smoothing <= 0.5:
             raise ValueError(f"refiner.peak_smoothing must be a share of the tile's side in [0, 0.5] (0: the raw "
                              f"peak), got {self.peak_smoothing}")
+
+    def loss(self, nll: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+        """The refiner's loss: the (B,) negative log-likelihoods of the truths at (B, 2) tile fractions, averaged
+        with edge_weight on the truths near the tile's edge."""
+        if self.edge_weight == 1.0:
+            return nll.mean()
+        weight = torch.where(near_edge(truth), self.edge_weight, 1.0).to(nll.dtype)
+        return (weight * nll).sum() / weight.sum()
 
     def side(self, aerial_size: int) -> int:
         return self.size or aerial_size

@@ -132,7 +132,7 @@ class CrossViewTask(Task):
         if self.refine.query_extent_m:
             scale["query_scale"] = self.refine.query_scale(batch["refine_extent_m"].cpu()).to(batch["refine_query"].device)
         out = self.refiner(batch["refine_query"], batch["refine_reference"], self.refine_candidates(), **scale)
-        refine_loss = out.nll(batch["tile_px"], batch["refine_heading"].float()).mean()
+        refine_loss = self.refine.loss(out.nll(batch["tile_px"], batch["refine_heading"].float()), batch["tile_px"])
         if self.refine.stage == "refine":
             return {"loss": refine_loss, "refine_loss": refine_loss.detach()}
         retrieval = self._retrieval_step(batch)

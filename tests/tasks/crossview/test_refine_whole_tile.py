@@ -117,3 +117,14 @@ def test_the_evaluation_and_the_calibration_read_the_answer_with_the_configured_
     plain = refiner_condition(Fixed(), RefineConfig())
     assert "peak_smoothing" not in plain  # galleries calibrated before the key stay valid for such refiners
     assert refiner_condition(Fixed(), RefineConfig(peak_smoothing=0.05))["peak_smoothing"] == 0.05
+
+
+def test_edge_weight_weighs_the_truths_near_the_edge_in_the_loss():
+    nll = torch.tensor([1.0, 2.0, 4.0, 8.0])
+    truth = torch.tensor([[0.5, 0.5], [0.05, 0.5], [0.5, 0.95], [0.3, 0.3]])  # the 2nd and 3rd are edge truths
+    assert RefineConfig().loss(nll, truth) == nll.mean()
+    expected = (1.0 + 3 * 2.0 + 3 * 4.0 + 8.0) / (1 + 3 + 3 + 1)  # the weighted mean, by hand
+    assert RefineConfig(edge_weight=3.0).loss(nll, truth).item() == pytest.approx(expected)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="refiner.edge_weight must be a weight > 0"):
+            RefineConfig(edge_weight=bad)

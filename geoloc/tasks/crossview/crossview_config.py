@@ -162,8 +162,14 @@ def parse_evaluation(cfg: DictConfig, stored: DictConfig) -> CrossViewEvaluation
     return CrossViewEvaluation(data=data, reader=reader, model=model, components=components,
                                job=top_level(cfg, EvaluateKeys, "evaluate.py"), gallery=gallery,
                                run_dir=OmegaConf.select(cfg, "run_dir", throw_on_resolution_failure=False),
-                               precision=str(OmegaConf.select(stored, "trainer.precision", default="32")),
-                               cpu_precision=str(OmegaConf.select(stored, "trainer.cpu_precision", default="32")))
+                               **stored_precision(stored))
+
+
+def stored_precision(stored: DictConfig) -> dict[str, str]:
+    """The autocast a run trained and validated under, from its stored config: {"precision": trainer.precision (on
+    CUDA), "cpu_precision": trainer.cpu_precision (on the CPU)}, "32" where the config has none; evaluate.py and
+    the apps compute under the same."""
+    return {key: str(OmegaConf.select(stored, f"trainer.{key}", default="32")) for key in ("precision", "cpu_precision")}
 
 
 def evaluated_dataset(stored: DictConfig | dict, requested: DictConfig | dict | None) -> dict:

@@ -26,6 +26,7 @@ from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import autocast, resolve_device
+from geoloc.tasks.crossview.crossview_config import stored_precision
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
 from geoloc.tasks.crossview.refine import matcher, offset_m, read_answer
@@ -50,9 +51,7 @@ class CrossViewEncoder:
         self.config, (self.data, self._reader) = config, parse_dataset(config.dataset)
         self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
         self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
-        # the run's autocast, as in training's validation: trainer.precision on CUDA, trainer.cpu_precision on the CPU
-        self.precision = str(OmegaConf.select(config, "trainer.precision", default="32"))
-        self.cpu_precision = str(OmegaConf.select(config, "trainer.cpu_precision", default="32"))
+        self.run_precision = stored_precision(config)  # the run's autocast, as in training's validation
 
     @classmethod
     def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":
@@ -157,7 +156,7 @@ class CrossViewEncoder:
 
     def autocast(self):
         """The run's autocast on this encoder's device (engine.device.autocast), as training's validation used."""
-        return autocast(self.precision, self.device, self.cpu_precision)
+        return autocast(self.run_precision["precision"], self.device, self.run_precision["cpu_precision"])
 
     @torch.no_grad()
     def encode_street(self, inputs: torch.Tensor) -> torch.Tensor:

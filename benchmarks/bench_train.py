@@ -5,7 +5,9 @@ Paper size: batch 64, 288 x 288 for both branches (IPT street image and aerial),
 (speed does not depend on the weights).
 
 - step: one training step as the Trainer runs it (forward through the task, backward, Adam step, queue push) on
-  a fixed batch already on the device; median of --steps after --warmup steps. On CUDA: peak GPU memory too.
+  a fixed batch already on the device; median of --steps after --warmup steps. On CUDA also: peak GPU memory, the
+  step with its batch moved each time from pinned memory (and through the task's on-device preparation), and the
+  places in geoloc where one step waits for the GPU (torch's sync debug mode).
 - loader: the Trainer's DataLoader (EpochSampler, --workers workers, pinned memory on CUDA) over a CVUSA-layout
   dataset, decode + IPT + augmentation included; pairs/s over --loader-batches batches after the first.
 - fit (--fit): `Trainer.fit` over the step's items (decoded once, held in memory and repeated to --fit-pairs pairs
@@ -82,11 +84,7 @@ def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
         if trainer.device.type == "cuda":
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        with trainer.autocast():
-            out = model(batch, trainer.engine)
-        trainer.engine.backward(out["loss"])
-        trainer.engine.step(optimizer)
-        task.on_train_batch_end(out)
+        one_step(model, task, trainer, batch, optimizer)
         if trainer.device.type == "cuda":
             torch.cuda.synchronize()
         if i >= args.warmup:
@@ -97,7 +95,57 @@ def bench_step(cfg, trainer: Trainer, train_set, args) -> dict:
               "query_shape": tuple(batch["query"].shape), "reference_shape": tuple(batch["reference"].shape)}
     if trainer.device.type == "cuda":
         result["peak_gib"] = torch.cuda.max_memory_allocated() / 2**30
+        result.update(step_with_transfer(model, task, trainer, items, optimizer, args))
+        result["syncs_a_step"] = syncs_of_a_step(model, task, trainer, batch, optimizer)
     return result
+
+
+def one_step(model, task, trainer: Trainer, batch: dict, optimizer) -> None:
+    with trainer.autocast():
+        out = model(batch, trainer.engine)
+    trainer.engine.backward(out["loss"])
+    trainer.engine.step(optimizer)
+    task.on_train_batch_end(out)
+
+
+def step_with_transfer(model, task, trainer: Trainer, items: list, optimizer, args) -> dict:
+    """The step with its batch moved each time from pinned host memory (what the loader hands over) and through
+    the task's on-device preparation, as fit does: median of --steps."""
+    host = {k: v.pin_memory() if isinstance(v, torch.Tensor) else v for k, v in default_collate(items).items()}
+    times = []
+    for _ in range(args.steps):
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        one_step(model, task, trainer, trainer.engine.to_device(host, task), optimizer)
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    step_s = statistics.median(times)
+    return {"step_transfer_s": step_s, "step_transfer_pairs_s": args.batch / step_s}
+
+
+def syncs_of_a_step(model, task, trainer: Trainer, batch: dict, optimizer) -> dict[str, int]:
+    """Where one step waits for the GPU: torch's sync debug mode warns at each synchronising call; counted by the
+    geoloc line that made it (the innermost frame in geoloc/)."""
+    import traceback
+    import warnings
+
+    counts: dict[str, int] = {}
+
+    def note(message, category, filename, lineno, file=None, line=None):
+        frames = [f for f in traceback.extract_stack() if "/geoloc/" in f.filename]
+        where = f"{Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else f"{filename}:{lineno}"
+        counts[where] = counts.get(where, 0) + 1
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = note
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            one_step(model, task, trainer, batch, optimizer)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    torch.cuda.synchronize()
+    return counts
 
 
 class EveryEpochBest:
@@ -263,9 +311,14 @@ def main(argv=None) -> dict:
         mem = f", peak GPU memory {result['peak_gib']:.1f} GiB" if "peak_gib" in result else ""
         print(f"step: {result['step_s']:.2f} s = {result['step_pairs_s']:.2f} pairs/s (query "
               f"{result['query_shape']}, reference {result['reference_shape']}){mem}")
+        if "step_transfer_pairs_s" in result:
+            print(f"step with its batch moved from pinned memory: {result['step_transfer_pairs_s']:.2f} pairs/s; "
+                  f"syncs a step: {sum(result['syncs_a_step'].values())} {result['syncs_a_step']}", flush=True)
     if args.fit:
         result.update(bench_fit(cfg, train_set, args, result.get("step_s")))
         ratio = f", fit / step = {result['fit_pairs_s'] / result['step_pairs_s']:.3f}" if "step_pairs_s" in result else ""
+        if "step_transfer_pairs_s" in result:
+            ratio += f", fit / step with transfer = {result['fit_pairs_s'] / result['step_transfer_pairs_s']:.3f}"
         idle = (f", idle {result['idle_between_epochs_s']:.2f} s beyond one step" if "idle_between_epochs_s" in result
                 else "")
         print(f"fit: {result['fit_pairs_s']:.2f} pairs/s over epochs 1-{args.fit_epochs - 1} of "

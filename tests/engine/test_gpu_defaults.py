@@ -180,6 +180,20 @@ def test_the_write_holds_the_state_of_when_it_was_submitted(tmp_path, monkeypatc
     assert torch.equal(ckpt_io.load(tmp_path / "best.pt")["task"]["w"], torch.zeros(4))
 
 
+def test_a_checkpoint_is_written_without_zip_crcs_and_torch_is_left_as_it_was(tmp_path):
+    zipfile = pytest.importorskip("zipfile")
+    config = pytest.importorskip("torch.utils.serialization").config
+    before = config.save.compute_crc32
+    ckpt_io.save_atomic({"task": {"w": torch.arange(6.0)}}, tmp_path / "last.pt")
+    assert config.save.compute_crc32 == before  # the user's own torch.save is untouched
+    with zipfile.ZipFile(tmp_path / "last.pt") as archive:
+        assert {info.CRC for info in archive.infolist()} == {0}  # torch.load never reads them
+    assert torch.equal(ckpt_io.load(tmp_path / "last.pt")["task"]["w"], torch.arange(6.0))
+    torch.save({"w": torch.arange(6.0)}, tmp_path / "own.pt")
+    with zipfile.ZipFile(tmp_path / "own.pt") as archive:
+        assert 0 not in {info.CRC for info in archive.infolist()}
+
+
 @pytest.mark.parametrize("name", ["auto", "cpu", "cuda", "cuda:1"])
 def test_the_trainer_takes_every_device_name_the_apps_take(name):
     assert checked({"device": name}, TrainerConfig, "trainer").device == name  # availability: when the run starts

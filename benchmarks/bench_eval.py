@@ -97,7 +97,7 @@ def run_huge(args):
     query = (z0[:nq] + args.large_noise * rng.standard_normal((nq, w.shape[0]), dtype=np.float32)) @ w
     query /= np.linalg.norm(query, axis=1, keepdims=True)
     knobs = (dict(coarse_m=args.coarse_m) if args.huge_kind == "pq_sq8" else
-             dict(nlist=args.nlist, m=args.m, nprobe=args.huge_nprobe))
+             dict(nlist=args.nlist, m=args.m, nprobe=args.huge_nprobe[0]))
     codebook = GalleryIndex(dim, backend="faiss", kind=args.huge_kind, k_factor=IVF_K_FACTOR, **knobs)
     base = _status("VmRSS")
     exact_peak = reset_peak()
@@ -162,6 +162,14 @@ def run_huge(args):
         res["own_after_search_mib"] = _status("RssAnon") - before_load["RssAnon"]
         res["mapped_after_search_mib"] = mapped_rss(folder)
         res["recall"] = recall_from_topk(rows)
+        res["sweep"] = [{"nprobe": args.huge_nprobe[0], "ms_per_query": res["ms_per_query"], "recall": res["recall"]}]
+        for nprobe in args.huge_nprobe[1:] if args.huge_kind == "ivfpq_disk" else ():  # the same loaded gallery
+            loaded.set_search_params(nprobe=nprobe)
+            t = time.perf_counter()
+            for i in range(nq):
+                rows[i] = loaded.search(query[i:i + 1], 10)[1][0].numpy()
+            res["sweep"].append({"nprobe": nprobe, "ms_per_query": 1e3 * (time.perf_counter() - t) / nq,
+                                 "recall": recall_from_topk(rows)})
     res["peak_mib"] = _status("VmHWM") - base
     res["load"] = load_average()
     print(json.dumps(res))
@@ -387,7 +395,7 @@ def main(args, argv):
         results.append(r)
         kept = 100 * r["recall"]["R@1"] / r["exact_recall"]["R@1"]
         what = (f"pq_sq8 (m {args.coarse_m}x4 + SQ8" if r["kind"] == "pq_sq8" else
-                f"ivfpq_disk (nlist {args.nlist} m {args.m}x4 + float16 rows, nprobe {args.huge_nprobe}")
+                f"ivfpq_disk (nlist {args.nlist} m {args.m}x4 + float16 rows, nprobe {args.huge_nprobe[0]}")
         mapped = r["mapped_after_search_mib"]
         print(f"\n[3] largest gallery: {what}, k_factor {IVF_K_FACTOR}), {r['n_ref']:,} references in "
               f"{r['shards']} shard(s), D = {r['dim']} ({r['n_ref'] * r['dim'] * 4 / 2**30:.1f} GiB of float32, "
@@ -401,6 +409,9 @@ def main(args, argv):
               f"{mapped['.f16']:.0f} of the rows' pages)\n"
               f"  {r['ms_per_query']:.2f} ms/query; R@1 {100 * r['recall']['R@1']:.1f}% against the exact "
               f"{100 * r['exact_recall']['R@1']:.1f}% ({kept:.1f}% kept)   load avg {r['load']}")
+        for row in r["sweep"][1:]:
+            print(f"  nprobe {row['nprobe']}: {row['ms_per_query']:.2f} ms/query; R@1 {100 * row['recall']['R@1']:.1f}% "
+                  f"({100 * row['recall']['R@1'] / r['exact_recall']['R@1']:.1f}% kept)")
     if not all(r["peak_is_exact"] for r in results):
         print("  (peak RSS could not be reset after the data was made: peaks include making the data)")
 
@@ -435,7 +446,8 @@ if __name__ == "__main__":
     parser.add_argument("--huge-n", type=int, default=0, help="the largest gallery (streamed; 0 skips)")
     parser.add_argument("--huge-kind", default="pq_sq8", choices=["pq_sq8", "ivfpq_disk"])
     parser.add_argument("--huge-shards", type=int, default=1, help="built in this many shards, then merged")
-    parser.add_argument("--huge-nprobe", type=int, default=256, help="ivfpq_disk: lists visited per query")
+    parser.add_argument("--huge-nprobe", type=int, nargs="+", default=[256],
+                        help="ivfpq_disk: lists visited per query (several: each searched on the same loaded gallery)")
     parser.add_argument("--huge-queries", type=int, default=300, help="its queries, timed one at a time")
     parser.add_argument("--huge-dir", default=None, help="where its index file is written (default: the temp dir)")
     parser.add_argument("--case", help=argparse.SUPPRESS)

@@ -7,6 +7,7 @@ and hands the result to DataLoader(batch_sampler=...). A sampler yields, per bat
 training pair; neighbours: (N, k) GPS neighbour lists (geoloc.data.neighbours) or None.
 
 - shuffle: the old batching, exactly (EpochSampler + BatchSampler).
+- pool: a training set far larger than an epoch, dealt places_per_epoch places at a time.
 - no_duplicate, gps_neighbours, similarity: every rank packs the same global batches of batch_size x
   world_size pairs from (seed, epoch) and takes slice [rank * batch_size, (rank + 1) * batch_size) of each, so
   the batch the loss gathers over ranks (rank order) is the packed one, with no place twice in it.
@@ -147,6 +148,38 @@ class OnePerPlaceBatches(PlaceBatches):
         return self._packed[2]
 
 
+class PoolBatches(OnePerPlaceBatches):
+    """A pool of places far larger than an epoch: each epoch trains on the next `places_per_epoch` places, one
+    random pair of each, cut into batches. The places are dealt from seeded permutations of the whole pool, one
+    after another, `places_per_epoch` at a time (the pool's last places_per_epoch-remainder of each permutation are
+    left for a later one), so a place comes back only once every other has had its turn, and no place is twice in
+    an epoch. The incomplete last global batch is dropped. Deterministic in (seed, epoch)."""
+
+    def __init__(self, *args, places_per_epoch: int, **kwargs):
+        super().__init__(*args, **kwargs)
+        places = len(self.members)
+        if isinstance(places_per_epoch, bool) or not isinstance(places_per_epoch, (int, np.integer)) or not (
+                self.global_size <= places_per_epoch <= places):
+            raise ValueError(f"sampler.places_per_epoch must be an integer from one global batch "
+                             f"({self.global_size}) to the {places} places of the training set, got {places_per_epoch!r}")
+        self.places_per_epoch = int(places_per_epoch)
+        self.epochs_per_deal = places // self.places_per_epoch
+
+    def places_of(self, epoch: int) -> np.ndarray:
+        """The places epoch `epoch` trains on: slot epoch % epochs_per_deal of deal epoch // epochs_per_deal."""
+        deal, slot = divmod(int(epoch), self.epochs_per_deal)
+        order = np.random.default_rng([self.seed, 2**31, deal]).permutation(len(self.members))  # the deal's order
+        return order[slot * self.places_per_epoch:(slot + 1) * self.places_per_epoch]
+
+    def batches(self) -> list[np.ndarray]:
+        if self._packed is None or self._packed[0] != self.epoch:
+            rng = np.random.default_rng([self.seed, self.epoch])
+            drawn = np.array([self.members[p][rng.integers(len(self.members[p]))] for p in self.places_of(self.epoch)])
+            full = len(drawn) // self.global_size * self.global_size
+            self._packed = (self.epoch, None, list(drawn[:full].reshape(-1, self.global_size)))
+        return self._packed[2]
+
+
 @register("sampler", "shuffle")
 def shuffle(labels, batch_size: int, seed: int, rank: int, world_size: int, neighbours=None) -> ShuffleBatches:
     """The default: the engine's seeded permutation per epoch (pairs of one place may share a batch)."""
@@ -165,6 +198,13 @@ def one_per_place(labels, batch_size: int, seed: int, rank: int, world_size: int
                   neighbours=None) -> OnePerPlaceBatches:
     """One random pair of each place per epoch, the places shuffled into batches."""
     return OnePerPlaceBatches("one_per_place", labels, batch_size, seed, rank, world_size)
+
+
+@register("sampler", "pool")
+def pool(labels, batch_size: int, seed: int, rank: int, world_size: int, neighbours=None,
+         places_per_epoch: int = 1200) -> PoolBatches:
+    """places_per_epoch places of the pool each epoch, dealt so that a place comes back only after all the others."""
+    return PoolBatches("pool", labels, batch_size, seed, rank, world_size, places_per_epoch=places_per_epoch)
 
 
 @register("sampler", "gps_neighbours")

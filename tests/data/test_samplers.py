@@ -298,3 +298,43 @@ def test_bad_configuration_gets_a_clear_error():
     sampler = build("similarity", labels)
     with pytest.raises(ValueError, match="one query and one reference descriptor per training pair \\(40\\)"):
         sampler.set_descriptors(np.zeros((39, 4)), np.zeros((39, 4)))
+
+
+def test_the_pool_deals_every_place_once_before_any_comes_back():
+    """A brute-force reading of the deal: within each run of epochs_per_deal epochs no place repeats (nor within
+    an epoch), each epoch holds places_per_epoch places, one pair of each, and the batches cover them in order."""
+    labels = np.repeat(np.arange(50), 2)  # 50 places of two pairs each
+    sampler = build("pool", labels, batch_size=4, places_per_epoch=12)
+    assert sampler.epochs_per_deal == 4  # 48 of the 50 places a deal; 2 wait for another deal
+    seen_per_deal: dict[int, list[int]] = {}
+    for epoch in range(12):
+        sampler.set_epoch(epoch)
+        keys = [key for batch in sampler for key in batch]
+        assert {e for _, e in keys} == {epoch} and len(keys) == 12
+        places = [int(labels[i]) for i, _ in keys]
+        assert places == sampler.places_of(epoch).tolist() and len(set(places)) == 12
+        seen_per_deal.setdefault(epoch // 4, []).extend(places)
+    for places in seen_per_deal.values():
+        assert len(places) == len(set(places)) == 48
+    assert len({tuple(sorted(p)) for p in seen_per_deal.values()}) == 3  # each deal leaves out other places
+    sampler.set_epoch(1)
+    again = build("pool", labels, batch_size=4, places_per_epoch=12)
+    again.set_epoch(1)
+    assert list(again) == list(sampler)  # (seed, epoch) alone
+    other_seed = build("pool", labels, batch_size=4, places_per_epoch=12, seed=1)
+    other_seed.set_epoch(1)
+    assert list(other_seed) != list(sampler)
+
+
+def test_the_pool_splits_each_global_batch_over_ranks_and_refuses_a_bad_size():
+    labels = np.arange(64)
+    ranks = world("pool", labels, 2, batch_size=4, places_per_epoch=20)
+    for r in ranks:
+        r.set_epoch(3)
+    per_rank = [list(r) for r in ranks]
+    assert len(per_rank[0]) == len(per_rank[1]) == 2  # 20 places: two global batches of 8, the rest dropped
+    together = [i for b0, b1 in zip(*per_rank) for i, _ in b0 + b1]
+    assert together == ranks[0].places_of(3)[:16].tolist()
+    for bad in (7, 65, 12.0, True):
+        with pytest.raises(ValueError, match="sampler.places_per_epoch must be an integer from one global batch"):
+            build("pool", labels, batch_size=4, world_size=2, places_per_epoch=bad)

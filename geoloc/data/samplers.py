@@ -138,11 +138,18 @@ class OnePerPlaceBatches(PlaceBatches):
         order = np.argsort(self.place, kind="stable")
         self.members = np.split(order, np.cumsum(np.bincount(self.place))[:-1])  # place -> its pair indices
 
+    shuffle_drawn = True  # the drawn pairs are put in a seeded order (PoolBatches deals its places in one already)
+
+    def epoch_places(self) -> np.ndarray:
+        """The places this epoch trains on, in order: all of them."""
+        return np.arange(len(self.members))
+
     def batches(self) -> list[np.ndarray]:
         if self._packed is None or self._packed[0] != self.epoch:
             rng = np.random.default_rng([self.seed, self.epoch])
-            drawn = np.array([m[rng.integers(len(m))] for m in self.members])
-            drawn = drawn[rng.permutation(len(drawn))]
+            drawn = np.array([self.members[p][rng.integers(len(self.members[p]))] for p in self.epoch_places()])
+            if self.shuffle_drawn:
+                drawn = drawn[rng.permutation(len(drawn))]
             full = len(drawn) // self.global_size * self.global_size
             self._packed = (self.epoch, None, list(drawn[:full].reshape(-1, self.global_size)))
         return self._packed[2]
@@ -171,13 +178,10 @@ class PoolBatches(OnePerPlaceBatches):
         order = np.random.default_rng([self.seed, 2**31, deal]).permutation(len(self.members))  # the deal's order
         return order[slot * self.places_per_epoch:(slot + 1) * self.places_per_epoch]
 
-    def batches(self) -> list[np.ndarray]:
-        if self._packed is None or self._packed[0] != self.epoch:
-            rng = np.random.default_rng([self.seed, self.epoch])
-            drawn = np.array([self.members[p][rng.integers(len(self.members[p]))] for p in self.places_of(self.epoch)])
-            full = len(drawn) // self.global_size * self.global_size
-            self._packed = (self.epoch, None, list(drawn[:full].reshape(-1, self.global_size)))
-        return self._packed[2]
+    shuffle_drawn = False
+
+    def epoch_places(self) -> np.ndarray:
+        return self.places_of(self.epoch)
 
 
 @register("sampler", "shuffle")

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from geoloc.data import polar
 from geoloc.models.refiners import Refinement
-from geoloc.models.refiners.correlation import correlate, rotate_maps
+from geoloc.models.refiners.correlation import CorrelationRefiner, correlate, rotate_maps
 from geoloc.tasks.crossview.views import crop_view
 
 
@@ -72,10 +72,11 @@ def test_one_query_expanded_over_its_tiles_scores_as_the_copied_query():
     assert (bins[k].item(), divmod(position, 33)) == (70.0, (14, 18))
 
 
-def brute_correlate(query, reference, headings, kernel, overlap):
+def brute_correlate(query, reference, headings, kernel, overlap, offset=0.0):
     """correlate's definition, cell by cell: the rotated query's central window laid with its centre on every cell
     corner of the reference map, the dot products summed over the window cells on the map, divided by how many
-    lie on it ("mean") or by the whole window ("window")."""
+    lie on it ("mean") or by the whole window ("window"), or less `offset` for each cell on the map, over the whole
+    window ("evidence")."""
     b, c, n, _ = query.shape
     rotated = rotate_maps(query, headings)
     start, half = (n - kernel) // 2, kernel // 2
@@ -92,17 +93,42 @@ def brute_correlate(query, reference, headings, kernel, overlap):
                             if 0 <= r < n and 0 <= q < n:
                                 total += float(window[:, a, d] @ reference[bi, :, r, q].double())
                                 cells += 1
+                    if overlap == "evidence":
+                        total -= offset * cells
                     out[bi, k, i, j] = total / (cells if overlap == "mean" else kernel * kernel)
     return out
 
 
-@pytest.mark.parametrize("overlap", ["mean", "window"])
+@pytest.mark.parametrize("overlap", ["mean", "window", "evidence"])
 def test_correlate_is_its_brute_force_definition(overlap):
     query, reference = torch.cat([smooth_maps(3, 8, 1), smooth_maps(3, 8, 2)]), torch.cat(
         [smooth_maps(3, 8, 3), smooth_maps(3, 8, 4)])
     headings = torch.tensor([0.0, 30.0])
-    found = correlate(query, reference, headings, kernel=4, overlap=overlap)
-    assert torch.allclose(found.double(), brute_correlate(query, reference, headings, 4, overlap), atol=1e-5)
+    found = correlate(query, reference, headings, kernel=4, overlap=overlap, offset=torch.tensor(0.3))
+    expected = brute_correlate(query, reference, headings, 4, overlap, offset=0.3)
+    assert torch.allclose(found.double(), expected, atol=1e-5)
+
+
+def test_the_evidence_overlap_needs_its_offset_and_learns_it():
+    query, reference = smooth_maps(3, 8, 1), smooth_maps(3, 8, 2)
+    with pytest.raises(ValueError, match="offset"):
+        correlate(query, reference, torch.zeros(1), kernel=4, overlap="evidence")
+    refiner = CorrelationRefiner(channels=4, width=4, overlap="evidence")
+    assert refiner.evidence_offset.requires_grad
+    assert "evidence_offset" not in CorrelationRefiner(channels=4, width=4).state_dict()  # other refiners unchanged
+    images = torch.rand(2, 3, 16, 16)
+    refiner(images, images, [0.0]).log_prob[..., 0, 0].sum().backward()  # a corner truth: the charge matters
+    assert refiner.evidence_offset.grad is not None and refiner.evidence_offset.grad.abs() > 0
+
+
+def test_replicate_padding_repeats_the_border_in_every_convolution():
+    refiner = CorrelationRefiner(channels=4, width=4, context=1, padding="replicate")
+    convs = [m for m in refiner.reference_encoder.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3)]
+    assert convs and all(m.padding_mode == "replicate" for m in convs)
+    assert all(m.padding_mode == "zeros" for m in CorrelationRefiner(channels=4, width=4).modules()
+               if isinstance(m, torch.nn.Conv2d))
+    with pytest.raises(ValueError, match="padding"):
+        CorrelationRefiner(padding="reflect")
 
 
 def test_a_camera_at_the_edge_scores_as_a_camera_at_the_centre():

@@ -139,9 +139,13 @@ def export_refiner(encoder: CrossViewEncoder, tmp: Path, opset: int | None) -> d
                           "query_extent_m / tile extent times larger about its centre where query_extent_m > 0), "
                           "with the tile map, the window's centre on each cell corner of the tile map, the mean "
                           "taken over the window's cells on the tile (overlap 'mean') or the whole window "
-                          "('window'); geoloc.models.refiners.correlation.correlate, and Refinement "
+                          "('window'), or ('evidence') the sum over the window's cells on the tile less "
+                          "evidence_offset for each of them, over the whole window; "
+                          "geoloc.models.refiners.correlation.correlate, and Refinement "
                           "(refinement.py) for the estimates read from it"),
              "overlap": getattr(encoder.refiner, "overlap", None),
+             "evidence_offset": (float(encoder.refiner.evidence_offset.detach())
+                                 if getattr(encoder.refiner, "evidence_offset", None) is not None else None),
              "query_extent_m": encoder.refine_config.query_extent_m,
              "scale": float(encoder.refiner.log_scale.detach().exp()) if hasattr(encoder.refiner, "log_scale") else None}
     for name, file in REFINER_FILES.items():

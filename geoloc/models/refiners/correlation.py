@@ -18,7 +18,10 @@ small learnt feature maps, so it trains on a CPU in minutes.
 Near the tile's edge part of the window lies off the tile. `overlap="mean"` (the default) averages over the cells
 on the tile, so a camera near the edge is scored on the same footing as one at the centre; `overlap="window"`
 divides by the whole window, which scores the edge lower the further the window leaves the tile (the first
-refiners were trained so; their checkpoints keep it).
+refiners were trained so; their checkpoints keep it). `overlap="evidence"` sums the cosines on the tile less a
+learnt charge per cell, over the whole window (a log-likelihood ratio of a match when each cell votes with noise):
+a position is scored by how much evidence it has. `padding="replicate"` has the encoders repeat the image's border
+instead of reading zeros beyond it. Neither is in the recipe (docs/localisation.md measures both).
 """
 
 from __future__ import annotations
@@ -33,21 +36,26 @@ from geoloc.models.refiners.refinement import Refinement
 from geoloc.registry import register
 
 
-def _block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> list[nn.Module]:
-    return [nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False),
+def _block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1, padding: str = "zeros") -> list[nn.Module]:
+    return [nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False, padding_mode=padding),
             nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
 
 
-def encoder(width: int, channels: int, context: int = 0) -> nn.Sequential:
+def encoder(width: int, channels: int, context: int = 0, padding: str = "zeros") -> nn.Sequential:
     """3 x S x S -> channels x S/2 x S/2, receptive field 29 pixels (one stride-2 stage, then dilated context), and
-    32, 64, ... more with each of `context` further blocks of dilation 8, 16, ..."""
-    more = [layer for k in range(context) for layer in _block(2 * width, 2 * width, dilation=8 * 2 ** k)]
-    return nn.Sequential(*_block(3, width), *_block(width, 2 * width, stride=2), *_block(2 * width, 2 * width),
-                         *_block(2 * width, 2 * width, dilation=2), *_block(2 * width, 2 * width, dilation=4),
+    32, 64, ... more with each of `context` further blocks of dilation 8, 16, ...; `padding`: what the convolutions
+    see beyond the image's border (torch's padding_mode: zeros, or the border's pixels repeated)."""
+    def block(c_in, c_out, stride=1, dilation=1):
+        return _block(c_in, c_out, stride, dilation, padding)
+    more = [layer for k in range(context) for layer in block(2 * width, 2 * width, dilation=8 * 2 ** k)]
+    return nn.Sequential(*block(3, width), *block(width, 2 * width, stride=2), *block(2 * width, 2 * width),
+                         *block(2 * width, 2 * width, dilation=2), *block(2 * width, 2 * width, dilation=4),
                          *more, nn.Conv2d(2 * width, channels, 1))
 
 
-OVERLAP = ("mean", "window")
+OVERLAP = ("mean", "window", "evidence")
+PADDING = ("zeros", "replicate")
+EVIDENCE_OFFSET = 0.25  # overlap="evidence": the initial charge of each cell on the tile (a mean cosine)
 
 
 def rotate_maps(maps: torch.Tensor, headings_deg: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
@@ -81,11 +89,13 @@ def window_cells(n: int, kernel: int, device=None) -> torch.Tensor:
 
 
 def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg: torch.Tensor,
-              kernel: int, query_scale: torch.Tensor | None = None, overlap: str = "mean") -> torch.Tensor:
+              kernel: int, query_scale: torch.Tensor | None = None, overlap: str = "mean",
+              offset: torch.Tensor | None = None) -> torch.Tensor:
     """query_maps, reference_maps: B x C x n x n (n even); -> B x K x (n+1) x (n+1) mean dot products of the
     query's central kernel x kernel window (kernel even), rotated by each heading (and drawn query_scale[b] times
     larger), with the reference map, the query's centre laid on each cell corner (i, j) of the reference map: the
-    mean over the window's cells on the map (overlap="mean") or over the whole window ("window"). One query against
+    mean over the window's cells on the map (overlap="mean") or over the whole window ("window"), or ("evidence")
+    the sum over the window's cells on the map less `offset` for each of them, over the whole window. One query against
     B tiles, given as its map expanded to B (stride 0 along the batch, as an app's top-k refinement passes it), is
     rotated and transformed once instead of B times where the tiles share one scale."""
     b, c, n, _ = query_maps.shape
@@ -102,7 +112,7 @@ def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_d
     shared = b > 1 and query_maps.stride(0) == 0 and one_scale  # the same query map for every tile, at one scale
     windows = turned_windows(query_maps[:1] if shared else query_maps, headings_deg, kernel,
                              None if query_scale is None else query_scale[:1] if shared else query_scale)
-    return correlate_turned(windows, reference_maps, kernel, overlap, shared)
+    return correlate_turned(windows, reference_maps, kernel, overlap, shared, offset)
 
 
 def turned_windows(query_maps: torch.Tensor, headings_deg: torch.Tensor, kernel: int,
@@ -120,7 +130,7 @@ def turned_windows(query_maps: torch.Tensor, headings_deg: torch.Tensor, kernel:
 
 
 def correlate_turned(windows: torch.Tensor, reference_maps: torch.Tensor, kernel: int, overlap: str = "mean",
-                     shared: bool = False) -> torch.Tensor:
+                     shared: bool = False, offset: torch.Tensor | None = None) -> torch.Tensor:
     """correlate's scores from its query side already computed: windows, turned_windows of B queries, or of one
     query for every reference map (shared); reference_maps: B x C x n x n -> B x K x (n+1) x (n+1)."""
     n = reference_maps.shape[-1]
@@ -131,15 +141,22 @@ def correlate_turned(windows: torch.Tensor, reference_maps: torch.Tensor, kernel
     full = torch.fft.irfft2(product, s=size)
     # output corner o: the window's centre on the reference map's cell corner o (full index o + kernel/2 - 1)
     first = kernel // 2 - 1
-    cells = window_cells(n, kernel, full.device) if overlap == "mean" else kernel * kernel
-    return full[..., first:first + n + 1, first:first + n + 1] / cells
+    summed = full[..., first:first + n + 1, first:first + n + 1]
+    if overlap == "window":
+        return summed / (kernel * kernel)
+    cells = window_cells(n, kernel, full.device)
+    if overlap == "mean":
+        return summed / cells
+    if offset is None:
+        raise ValueError("correlate: overlap 'evidence' needs the offset each cell on the map is charged")
+    return (summed - offset * cells) / (kernel * kernel)
 
 
 class CorrelationRefiner(nn.Module):
     """Two unshared small encoders (query: the aligned street image, reference: the tile) and a correlation."""
 
     def __init__(self, channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
-                 scale: float = 20.0, overlap: str = "mean", context: int = 0):
+                 scale: float = 20.0, overlap: str = "mean", context: int = 0, padding: str = "zeros"):
         super().__init__()
         if channels < 1 or width < 1 or heading_bins < 1 or not 0.0 < kernel_frac <= 1.0 or scale <= 0 or context < 0:
             raise ValueError(f"refiner correlation: channels, width, heading_bins must be >= 1, kernel_frac in (0, 1] "
@@ -147,10 +164,15 @@ class CorrelationRefiner(nn.Module):
                              f"{heading_bins}, kernel_frac={kernel_frac}, scale={scale}, context={context}")
         if overlap not in OVERLAP:
             raise ValueError(f"refiner correlation: overlap must be one of {OVERLAP}, got {overlap!r}")
+        if padding not in PADDING:
+            raise ValueError(f"refiner correlation: padding must be one of {PADDING}, got {padding!r}")
         self.kernel_frac, self.heading_bins, self.overlap = kernel_frac, heading_bins, overlap
-        self.query_encoder = encoder(width, channels, context)
-        self.reference_encoder = encoder(width, channels, context)
+        self.query_encoder = encoder(width, channels, context, padding)
+        self.reference_encoder = encoder(width, channels, context, padding)
         self.log_scale = nn.Parameter(torch.tensor(math.log(scale)))
+        # overlap="evidence": what each cell on the tile is charged (learnt), between a true match's mean cosine
+        # and a false one's; only such refiners hold it, so other checkpoints' state dicts are unchanged
+        self.evidence_offset = nn.Parameter(torch.tensor(EVIDENCE_OFFSET)) if overlap == "evidence" else None
 
     def encode_query(self, images: torch.Tensor) -> torch.Tensor:
         """B x 3 x S x S aligned (IPT) street images -> B x C x S/2 x S/2, unit length per position."""
@@ -164,8 +186,8 @@ class CorrelationRefiner(nn.Module):
               query_scale: torch.Tensor | None = None) -> Refinement:
         headings = torch.as_tensor(headings_deg, dtype=torch.float32, device=query_maps.device).reshape(-1)
         kernel = self.kernel(query_maps.shape[-1])
-        return self._refinement(correlate(query_maps, reference_maps, headings, kernel, query_scale, self.overlap),
-                                headings)
+        return self._refinement(correlate(query_maps, reference_maps, headings, kernel, query_scale, self.overlap,
+                                          self.evidence_offset), headings)
 
     def matcher(self, query_map: torch.Tensor, headings_deg, query_scale: torch.Tensor | None = None):
         """match of one query against tiles that come in parts, its map turned and transformed once: query_map
@@ -176,7 +198,7 @@ class CorrelationRefiner(nn.Module):
         scale = None if query_scale is None else torch.as_tensor(query_scale, dtype=torch.float32).reshape(1)
         windows = turned_windows(query_map, headings, kernel, scale)
         return lambda reference_maps: self._refinement(
-            correlate_turned(windows, reference_maps, kernel, self.overlap, shared=True), headings)
+            correlate_turned(windows, reference_maps, kernel, self.overlap, True, self.evidence_offset), headings)
 
     def kernel(self, n: int) -> int:
         """The side of the query's window matched on n x n maps: even, at least 2."""
@@ -194,9 +216,11 @@ class CorrelationRefiner(nn.Module):
 
 @register("refiner", "correlation")
 def correlation(channels: int = 16, width: int = 16, kernel_frac: float = 0.5, heading_bins: int = 36,
-                scale: float = 20.0, overlap: str = "mean", context: int = 0) -> CorrelationRefiner:
+                scale: float = 20.0, overlap: str = "mean", context: int = 0,
+                padding: str = "zeros") -> CorrelationRefiner:
     """channels: matched feature channels; width: the encoders' first width; kernel_frac: the share of the query
     map's side that is matched; heading_bins: candidate headings 360 k / K when the heading is unknown; scale: the
     initial logit scale of a mean cosine (learnt); overlap: mean over the window's cells on the tile, or over the
-    whole window (module docstring); context: further dilated blocks that widen the encoders' receptive field."""
-    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale, overlap, context)
+    whole window, or the evidence (module docstring); context: further dilated blocks that widen the encoders'
+    receptive field; padding: what the encoders' convolutions see beyond the image (zeros, or replicate)."""
+    return CorrelationRefiner(channels, width, kernel_frac, heading_bins, scale, overlap, context, padding)

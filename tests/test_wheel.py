@@ -70,6 +70,9 @@ def test_a_wheel_trains_evaluates_and_localizes_from_an_empty_folder(tmp_path):
     bin_dir = fresh_venv(tmp_path, wheel)
     where = run([str(bin_dir / "python"), "-c", "import geoloc; print(geoloc.__file__)"], cwd=tmp_path).stdout
     assert str(tmp_path / "venv") in where and str(REPO) not in where  # the wheel's geoloc, not the checkout's
+    # the weights shipped in the package (docs/backbones.md) come with it, and pass their card's checksum
+    run([str(bin_dir / "python"), "-c", "from geoloc.models.backbones import vgg16; vgg16(width=0.125, "
+         "pretrained=True, weights_path='geoloc:synthetic_vgg16_cpu', batchnorm=True)"], cwd=tmp_path)
 
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -37,7 +37,7 @@ def find_weights(model: str, weights_path: str | None, pretrained_cfg) -> Path:
     """The local file of `model`'s ImageNet weights; MissingWeightsError saying where it looked when none is."""
     if weights_path:
         return weights_file(weights_path, f"the state dict of the full timm model {model!r} (.safetensors, .pth or "
-                                          ".bin)")
+                                          ".bin)", backbone="timm")
     from huggingface_hub import try_to_load_from_cache  # reads the cache folder only, never the network
 
     hub_id = getattr(pretrained_cfg, "hf_hub_id", None)

@@ -8,6 +8,8 @@ import torch
 from torch import nn
 from torchvision.models import vgg16, vgg16_bn
 
+from geoloc.models import packaged_weights
+
 # The files torchvision's VGG16_Weights.IMAGENET1K_V1 / VGG16_BN_Weights.IMAGENET1K_V1 download into the hub cache.
 IMAGENET_FILE = "vgg16-397923af.pth"
 IMAGENET_BN_FILE = "vgg16_bn-6c64b313.pth"
@@ -18,8 +20,11 @@ class MissingWeightsError(FileNotFoundError):
     pass
 
 
-def weights_file(weights_path: str, contents: str) -> Path:
-    """`backbone.weights_path` as an existing file; MissingWeightsError saying what it should hold otherwise."""
+def weights_file(weights_path: str, contents: str, backbone: str = "vgg16") -> Path:
+    """`backbone.weights_path` as an existing file (`geoloc:NAME`: the checked file shipped with geoloc for a
+    `backbone` trunk); MissingWeightsError saying what it should hold otherwise."""
+    if packaged_weights.is_packaged(weights_path):
+        return packaged_weights.packaged_file(weights_path, backbone)
     path = Path(weights_path).expanduser()
     if not path.is_file():
         raise MissingWeightsError(f"backbone.weights_path={weights_path!r} does not exist. Point it at {contents}.")
@@ -73,6 +78,18 @@ def load_imagenet_features(features: nn.Sequential, weights_path: str | None = N
     features.load_state_dict({k: conv[k] for k in own})
 
 
+def check_packaged(weights_path: str | None, width: float, batchnorm: bool) -> None:
+    """Weights shipped with geoloc fit one trunk: refuse them for another width or batchnorm, saying which fits."""
+    if not packaged_weights.is_packaged(weights_path):
+        return
+    fits = packaged_weights.card(weights_path)["backbone"]
+    if (fits.get("width"), fits.get("batchnorm")) != (width, batchnorm):
+        raise ValueError(f"backbone.weights_path={weights_path!r} is a VGG16 trunk at width {fits.get('width')} "
+                         f"with batchnorm={fits.get('batchnorm')}; this backbone has width {width} and batchnorm="
+                         f"{batchnorm}: set backbone.width={fits.get('width')} "
+                         f"backbone.batchnorm={str(fits.get('batchnorm')).lower()}.")
+
+
 class VGG16Trunk(nn.Module):
     """VGG16 conv layers up to conv5_3 (no pool5), returning the three tapped maps.
 
@@ -94,8 +111,11 @@ class VGG16Trunk(nn.Module):
         if width != 1.0:
             features = _scaled(features, width)
         if pretrained:
-            if width != 1.0:
-                raise ValueError("backbone.pretrained=true needs backbone.width=1.0 (ImageNet weights are full width).")
+            check_packaged(weights_path, width, batchnorm)
+            if width != 1.0 and not weights_path:
+                raise ValueError("backbone.pretrained=true needs backbone.width=1.0 (ImageNet weights are full width), "
+                                 "or backbone.weights_path at a trunk of this width (geoloc:synthetic_vgg16_cpu for "
+                                 "width 0.125 with batchnorm).")
             load_imagenet_features(features, weights_path, IMAGENET_BN_FILE if batchnorm else IMAGENET_FILE)
         self.features = features
         self.taps = [i for _, i in taps]

@@ -89,7 +89,8 @@ def test_every_option_of_every_group_composes_and_builds(group, option, imagenet
         SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, uniform).configure_optimizers()
         JointTask(task_cfg, uniform).configure_optimizers()
         return
-    if cfg.backbone.get("pretrained"):
+    if cfg.backbone.get("pretrained") and not str(cfg.backbone.get("weights_path")).startswith("geoloc:"):
+        # ImageNet's files are not here; weights shipped in the package (geoloc:NAME) are, and load as they are
         stand_in = ([f"backbone.weights_path={imagenet_stand_in['trunk']}"] if cfg.backbone.name == "vgg16" else
                     ["backbone.pretrained=false", "backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"])
         cfg = compose_train([*overrides, *stand_in] + ([f"dataset.root={tmp_path}"] if "root=" not in str(

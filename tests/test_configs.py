@@ -7,6 +7,7 @@ import torch
 from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
+from geoloc.models.packaged_weights import is_packaged
 from geoloc.tasks.crossview.data_config import parse_dataset
 
 from hydra.errors import MissingConfigException
@@ -89,7 +90,7 @@ def test_every_option_of_every_group_composes_and_builds(group, option, imagenet
         SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, uniform).configure_optimizers()
         JointTask(task_cfg, uniform).configure_optimizers()
         return
-    if cfg.backbone.get("pretrained") and not str(cfg.backbone.get("weights_path")).startswith("geoloc:"):
+    if cfg.backbone.get("pretrained") and not is_packaged(cfg.backbone.get("weights_path")):
         # ImageNet's files are not here; weights shipped in the package (geoloc:NAME) are, and load as they are
         stand_in = ([f"backbone.weights_path={imagenet_stand_in['trunk']}"] if cfg.backbone.name == "vgg16" else
                     ["backbone.pretrained=false", "backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"])

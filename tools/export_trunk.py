@@ -19,9 +19,10 @@ import sys
 from pathlib import Path
 
 import torch
-import yaml
+from omegaconf import OmegaConf
 
 from geoloc.engine import checkpoint
+from geoloc.tasks.crossview.crossview_run import stored_config
 
 DATA_KEYS = ("name", "preset", "train_size", "val_size", "seed", "aerial_size", "pano_size")
 
@@ -36,7 +37,7 @@ def trunk_state(task: dict, branch: str) -> dict:
 
 
 def card(ckpt: dict, name: str, digest: str, recipe: str, marker: dict | None, note: str) -> dict:
-    cfg = yaml.safe_load(ckpt["config"]) if isinstance(ckpt["config"], str) else ckpt["config"]
+    cfg = OmegaConf.to_container(stored_config(ckpt), resolve=True)
     backbone = {k: cfg["backbone"][k] for k in ("name", "width", "batchnorm") if k in cfg["backbone"]}
     data = {k: cfg["dataset"].get(k) for k in DATA_KEYS}
     if marker is not None:

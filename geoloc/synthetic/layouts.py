@@ -117,12 +117,17 @@ def write_cvact_mat(root: Path, numbers: dict) -> None:
         "valSet": {"valInd": val_ind},
         "valSetAll": {"valInd": val_ind},
     }
+    write_bytes(root / "ACT_data.mat", mat_bytes(mat, "geoloc.data.synthetic"))
+
+
+def mat_bytes(mat: dict, written_by: str) -> bytes:
+    """`mat` as a MATLAB 5 file (scipy). Its 116-byte header holds a creation time stamp: a fixed text naming
+    `written_by` replaces it, so the same content always gives the same bytes."""
     buf = io.BytesIO()
     scipy.io.savemat(buf, mat, format="5", oned_as="column")
     data = bytearray(buf.getvalue())
-    # The 116-byte MAT header holds a creation time stamp; a fixed text keeps the file byte-identical.
-    data[:116] = b"MATLAB 5.0 MAT-file, written by geoloc.data.synthetic".ljust(116, b" ")
-    write_bytes(root / "ACT_data.mat", bytes(data))
+    data[:116] = f"MATLAB 5.0 MAT-file, written by {written_by}".encode().ljust(116, b" ")
+    return bytes(data)
 
 
 # -- dynamic ----------------------------------------------------------------------------------------------------

@@ -38,6 +38,8 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
+from geoloc.synthetic.layouts import mat_bytes, write_bytes
+
 REPO = Path(__file__).resolve().parents[2]
 MANIFEST = Path(__file__).resolve().parent / "manifest.json"
 RAW_URL = "https://raw.githubusercontent.com/{repository}/{commit}/{path}"
@@ -252,8 +254,8 @@ def check_destination(out: Path, repo: Path = REPO) -> Path:
 
 # -- layouts -------------------------------------------------------------------------------------------------------
 def write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(data)
+    """Written in place: the whole set is built in a temporary folder and renamed at the end (assemble)."""
+    write_bytes(path, data, atomic=False)
 
 
 def write_cvusa(root: Path, pairs: list[tuple[dict, bytes, dict, bytes]]) -> list[list[str]]:
@@ -275,7 +277,6 @@ def cvact_id(k: int) -> str:
 
 def write_cvact(root: Path, pairs: list[tuple[dict, bytes, dict, bytes]]) -> list[list[str]]:
     import numpy as np
-    import scipy.io
 
     table, ids = [], []
     for k, (q, q_bytes, r, r_bytes) in enumerate(pairs, start=1):
@@ -286,11 +287,7 @@ def write_cvact(root: Path, pairs: list[tuple[dict, bytes, dict, bytes]]) -> lis
         write(root / aerial, r_bytes)
         table.append([street, aerial, q["pair"]])
     mat = {"panoIds": np.array(ids), "valSet": {"valInd": np.arange(1, len(ids) + 1, dtype=np.int64).reshape(-1, 1)}}
-    buf = io.BytesIO()
-    scipy.io.savemat(buf, mat, format="5", oned_as="column")
-    data = bytearray(buf.getvalue())
-    data[:116] = b"MATLAB 5.0 MAT-file, written by geoloc tools/devset/assemble.py".ljust(116, b" ")  # no time stamp
-    write(root / "ACT_data.mat", bytes(data))
+    write(root / "ACT_data.mat", mat_bytes(mat, "geoloc tools/devset/assemble.py"))
     return table
 
 

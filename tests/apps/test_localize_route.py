@@ -113,3 +113,35 @@ def test_localize_py_fuses_a_folder_of_frames_with_its_odometry_into_a_track(gal
     assert not (tmp_path / "short").exists()  # refused before the run took its folder
     with pytest.raises(ConfigError, match="odometry="):
         localize(route_cfg(ckpt, folder, frames, tmp_path / "none", f"odometry={frames / 'missing.csv'}"))
+
+
+def test_fit_route_filter_answers_every_held_out_query_on_the_route_plane(gallery, capsys):  # noqa: F811
+    """tools/fit_route_filter.py: each line of the gallery's queries.jsonl answered, its truth on the filter's plane
+    (x/y metres as positions.csv gives them), and the printed overrides those of fit_answer_model."""
+    import importlib.util
+
+    from conftest import REPO
+    from geoloc.apps.localize.localizer import Localizer
+    from geoloc.sequence.fit import fit_answer_model
+
+    spec = importlib.util.spec_from_file_location("fit_route_filter", REPO / "tools" / "fit_route_filter.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    _, ckpt, folder = gallery
+    lines = [json.loads(line) for line in (folder / "queries.jsonl").read_text().splitlines()]
+    answers, truths = tool.held_out_answers(Localizer.load(str(ckpt), str(folder), device="cpu"), folder, 3, None)
+    assert len(answers) == len(lines) == 8 and all(len(a) == 3 for a in answers)
+    assert np.allclose(truths, [[q["x_m"], q["y_m"]] for q in lines])
+    # a radius that makes about half the answers hits: the nearest tile's distance, at its median over the answers
+    radius = float(np.median([np.linalg.norm(a.centres - t, axis=1).min() for a, t in zip(answers, truths)])) + 1e-6
+    args = [str(ckpt), str(folder), "--topk", "3", "--radius", str(radius), "--out", str(folder.parent / "fit.json")]
+    try:
+        model = fit_answer_model(answers, truths, radius_m=radius)
+    except ValueError as refused:  # a one-epoch model's scores may not rank the tiles: the tool refuses alike
+        with pytest.raises(ValueError, match=str(refused).split(" (")[0][:40]):
+            tool.main(args)
+        return
+    tool.main(args)
+    assert capsys.readouterr().out.strip() == (f"route.wrong_answer_prob={model.wrong_answer_prob:.4f} "
+                                               f"route.temperature={model.temperature:.4f}")
+    assert json.loads((folder.parent / "fit.json").read_text())["hits"] == model.hits

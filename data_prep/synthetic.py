@@ -19,6 +19,8 @@ HELP = {
     "traffic_change": "fraction of cars/pedestrians that differ between views",
     "noise_std": "sensor noise std, 8-bit levels",
     "jpeg_quality": "lowest JPEG quality a view is saved at",
+    "view_nuisance": "cvusa, cvact: strength 0..1 of the nuisances drawn apart per view (materials, gamma, haze, "
+                     "tile scale, camera height and pitch); default none",
     "style": "terrain: mix | urban | suburban | rural",
     "cities": "vigor: how many of VIGOR's cities (Chicago, NewYork, SanFrancisco, Seattle, in that order)",
     "grid": "vigor: satellite tiles per side of a city",

@@ -67,12 +67,17 @@ def cvusa(root: str, split: str) -> RetrievalSplit:
 
 @register("dataset", "synthetic")
 def synthetic(root: str | None, split: str, preset: str = "small", train_size: int = 1200, val_size: int = 300,
-              seed: int = 0, workers: int = 2) -> RetrievalSplit:
-    """The embedded default: a synthetic world in CVUSA's layout. `seed` picks the world, not the run's seed."""
+              seed: int = 0, workers: int = 2, view_nuisance: float | None = None) -> RetrievalSplit:
+    """The embedded default: a synthetic world in CVUSA's layout. `seed` picks the world, not the run's seed.
+    view_nuisance: the strength of the nuisances drawn apart for the two views (geoloc.synthetic.nuisance); null,
+    the default, draws none."""
     from geoloc.synthetic import default_cache, ensure_dataset
 
     check_split("the synthetic dataset (CVUSA's layout)", split, CVUSA_SPLITS)  # before rendering a world
-    root = Path(root).expanduser() if root else default_cache() / f"cvusa-{preset}-{train_size}-{val_size}-seed{seed}"
+    name = f"cvusa-{preset}-{train_size}-{val_size}-seed{seed}"
+    if view_nuisance is not None:
+        name += f"-nuisance{float(view_nuisance):g}"
+    root = Path(root).expanduser() if root else default_cache() / name
     root = Path(ensure_dataset("cvusa", root, preset=preset, train=train_size, val=val_size, seed=seed,
-                               workers=workers))
+                               workers=workers, view_nuisance=view_nuisance))
     return cvusa_layout_split(f"synthetic/{split}", root, split)

@@ -19,18 +19,24 @@ def tile_slice(world: World, tile_m: float) -> slice:
     return slice(lo, lo + t)
 
 
-def render_aerial(world: World, light: Lighting, tile_m: float, size: int, season: float):
-    """-> (rgb float size x size x 3 in [0, 1], class map size x size uint8)."""
+def render_aerial(world: World, light: Lighting, tile_m: float, size: int, season: float,
+                  class_gains: np.ndarray | None = None):
+    """-> (rgb float size x size x 3 in [0, 1], class map size x size uint8). class_gains: see
+    render_aerial_window."""
     sl = tile_slice(world, tile_m)
-    return render_aerial_window(world, light, sl, sl, size, season)
+    return render_aerial_window(world, light, sl, sl, size, season, class_gains)
 
 
-def render_aerial_window(world: World, light: Lighting, rows: slice, cols: slice, size: int, season: float):
+def render_aerial_window(world: World, light: Lighting, rows: slice, cols: slice, size: int, season: float,
+                         class_gains: np.ndarray | None = None):
     """The square of cells [rows, cols] (any place in the world: the vigor layout's overlapping tiles) -> (rgb float
-    size x size x 3 in [0, 1], class map size x size uint8)."""
+    size x size x 3 in [0, 1], class map size x size uint8). class_gains (classes x 3): each class's albedo times
+    its RGB gain (nuisance.py's per-view materials); None leaves it."""
     cls = world.cls[rows, cols]
     albedo = world.top[rows, cols].astype(np.float32) * (1.0 / 255.0)
     albedo = apply_season(albedo, cls, season)
+    if class_gains is not None:
+        albedo *= class_gains[cls]
     rgb = albedo * light.top_shade_block(rows, cols)[..., None]
     t = cls.shape[0]
     interp = cv2.INTER_AREA if size < t else cv2.INTER_LINEAR

@@ -61,6 +61,9 @@ def generate(layout: str, out, train: int | None = None, val: int | None = None,
         raise ValueError("train + val must be at least 1")
     if workers < 1:
         raise ValueError("workers must be at least 1")
+    if cfg.view_nuisance is not None and layout not in ("cvusa", "cvact"):
+        raise ValueError(f"view_nuisance is drawn for the cross-view pairs of the cvusa and cvact layouts only; the "
+                         f"{layout} layout renders its views without it: leave it null")
     root = Path(out)
     # the generator's tag is the name the renderer was published under; every cache already rendered carries it
     marker = {"generator": "geoloc.data.synthetic", "version": VERSION, "layout": layout, "seed": seed,

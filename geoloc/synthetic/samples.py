@@ -8,6 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from . import nuisance
 from . import traffic as T
 from .aerial import render_aerial
 from .appearance import Conditions, base_conditions, finish, noise_patch, other_time
@@ -60,7 +61,7 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     -> {'aerial': S x S x 3 uint8 RGB, 'pano': H x W x 3 uint8 RGB, 'pano_labels': H x W uint8 (0..9),
         'aerial_labels': S x S uint8, 'aerial_conditions', 'street_conditions', 'style'}.
     """
-    r_world, r_cond, r_traffic, r_noise, r_sky, *_ = sample_rngs(seed, split, index)
+    r_world, r_cond, r_traffic, r_noise, r_sky, _, r_view, _ = sample_rngs(seed, split, index)
     gap = cfg.gap()
     place = make_place(cfg, r_world)
     extent = place.world.extent
@@ -69,15 +70,28 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     agents_a = T.sample_traffic(r_traffic, place.roads, place.style, extent, [(0, 0)], 5.0, cfg.traffic)
     agents_s = street_traffic(r_traffic, place, extent, agents_a, gap.resolved()["traffic_change"],
                               [(0, 0)], 5.0, cfg.traffic)
+    # each view's own nuisances (nuisance.py), from a stream nothing else draws from; None: the views share them
+    view_a, view_s = ((None, None) if cfg.view_nuisance is None else
+                      (nuisance.draw(r_view, cfg.view_nuisance), nuisance.draw(r_view, cfg.view_nuisance)))
 
     world_a = T.stamp(place.world, T.near(agents_a, cfg.tile_m / 2 + 20))
-    rgb_a, cls_a = render_aerial(world_a, Lighting(world_a, cond_a.sun), cfg.tile_m, cfg.aerial_size,
-                             cond_a.season)
+    tile_m = cfg.tile_m if view_a is None else nuisance.scaled_tile_m(cfg.tile_m, cfg.cell_m, view_a.tile_scale,
+                                                                      world_a.n)
+    rgb_a, cls_a = render_aerial(world_a, Lighting(world_a, cond_a.sun), tile_m, cfg.aerial_size,
+                                 cond_a.season, None if view_a is None else view_a.class_gains)
     world_s = T.stamp(place.world, agents_s)
     h, w = (cfg.sphere_height, cfg.sphere_width) if sphere else (cfg.pano_height, cfg.pano_width)
-    az, tan_el = panorama_rays(h, w, SPHERE_HORIZON if sphere else CVUSA_HORIZON)
+    horizon = SPHERE_HORIZON if sphere else CVUSA_HORIZON
+    height, street_extra = cfg.camera_height, {}
+    if view_s is not None:
+        horizon = nuisance.horizon_with_pitch(horizon, view_s.pitch_deg, h, w)
+        height *= view_s.height_factor
+        street_extra = dict(fog_dist=450.0 * view_s.fog_factor, class_gains=view_s.class_gains)
+    az, tan_el = panorama_rays(h, w, horizon)
     rgb_s, cls_s, _ = render_street(world_s, Lighting(world_s, cond_s.sun), Sky(r_sky, cond_s.sun),
-                                    (0.0, 0.0, cfg.camera_height), az, tan_el, cond_s.season)
+                                    (0.0, 0.0, height), az, tan_el, cond_s.season, **street_extra)
+    if view_a is not None:
+        rgb_a, rgb_s = nuisance.respond(rgb_a, view_a, aerial=True), nuisance.respond(rgb_s, view_s, aerial=False)
     return dict(aerial=finish(rgb_a, cond_a, r_noise), pano=finish(rgb_s, cond_s, r_noise), pano_labels=cls_s,
                 aerial_labels=cls_a,
                 aerial_conditions=cond_a, street_conditions=cond_s, style=place.style)

@@ -11,14 +11,18 @@ from .world import World
 
 
 def render_street(world: World, light: Lighting, sky: Sky, cam_xyz, az_deg: np.ndarray, tan_el: np.ndarray,
-                  season: float, fog_dist: float = 450.0, d_max: float | None = None):
+                  season: float, fog_dist: float = 450.0, d_max: float | None = None,
+                  class_gains: np.ndarray | None = None):
     """Rays given by az_deg (W,) and tan_el (H, W) or (H, 1) -> (rgb float H x W x 3 in [0,1], cls H x W,
     dist H x W horizontal metres, inf for sky). d_max: how far the rays are marched; by default the radius that
-    stays inside the grid in every direction (a caller that knows its rays' directions may pass more)."""
+    stays inside the grid in every direction (a caller that knows its rays' directions may pass more). class_gains
+    (classes x 3): each class's albedo times its RGB gain (nuisance.py); None leaves it."""
     if d_max is None:
         d_max = 0.5 * world.extent - np.hypot(cam_xyz[0], cam_xyz[1]) - 2 * world.cell  # stay inside the grid
     hits = march(world, light, cam_xyz, az_deg, tan_el, sample_distances(world.cell, max(d_max, 5.0)))
     albedo = apply_season(hits.albedo, hits.cls, season)
+    if class_gains is not None:
+        albedo *= class_gains[hits.cls]
     rgb = albedo * hits.shade[..., None]
     tan_full = np.broadcast_to(tan_el, hits.cls.shape)
     az_full = np.broadcast_to(np.asarray(az_deg)[None, :], hits.cls.shape)

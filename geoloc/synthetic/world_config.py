@@ -39,6 +39,7 @@ class SynthConfig:
     traffic_change: float | None = None
     noise_std: float | None = None
     jpeg_quality: int | None = None
+    view_nuisance: float | None = None  # strength in (0, 1] of the nuisances drawn apart per view (nuisance.py)
 
     def __post_init__(self):
         # Coerce to the declared types, so 144 and 144.0 give the same marker (and the same dataset).
@@ -68,6 +69,8 @@ class SynthConfig:
         if not 0.5 <= self.camera_height <= 10:
             raise ValueError(f"camera_height must be in [0.5, 10] m, got {self.camera_height}")
         self.gap()  # validates the appearance controls
+        if self.view_nuisance is not None and not 0 < self.view_nuisance <= 1:
+            raise ValueError(f"view_nuisance is a strength in (0, 1] (or null: none), got {self.view_nuisance}")
 
     def gap(self) -> AppearanceGap:
         return AppearanceGap(self.gap_strength, self.sun_shift, self.color_shift, self.season_shift,
@@ -80,7 +83,12 @@ class SynthConfig:
         return t, n
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The marker's config. view_nuisance appears only when set, so the markers of datasets rendered before it
+        existed (which it leaves pixel for pixel as they were) still match."""
+        out = asdict(self)
+        if out["view_nuisance"] is None:
+            del out["view_nuisance"]
+        return out
 
 
 @dataclass(frozen=True)

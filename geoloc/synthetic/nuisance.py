@@ -8,7 +8,7 @@ rest of the sample does not use (so resume and determinism hold):
   road resurfaced, lawns of another green: ground materials, building styles and vegetation differ between the
   captures);
 - sensor response: a gamma of exp(U(-0.2 s, 0.2 s));
-- haze: the street view's fog distance times exp(U(-0.7 s, 0.7 s)); the aerial view blended towards a pale haze
+- haze: the street view's fog distance (street.FOG_DIST_M) times exp(U(-0.7 s, 0.7 s)); the aerial view blended towards a pale haze
   colour by U(0, 0.25 s);
 - the aerial tile's scale: its ground side times exp(U(-0.1 s, 0.1 s)), rounded to an even number of cells (a tile
   of another zoom or a misregistered scale);

@@ -18,7 +18,7 @@ from .panorama import CVUSA_HORIZON, SPHERE_HORIZON, panorama_rays
 from .perspective import Pose, jitter_pose, lane_pose, pinhole_rays
 from .places import Place, build_place
 from .sky import Sky
-from .street import render_street
+from .street import FOG_DIST_M, render_street
 from .styles import choose_style
 
 SPLITS = {"train": 0, "val": 1}
@@ -70,7 +70,7 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     agents_a = T.sample_traffic(r_traffic, place.roads, place.style, extent, [(0, 0)], 5.0, cfg.traffic)
     agents_s = street_traffic(r_traffic, place, extent, agents_a, gap.resolved()["traffic_change"],
                               [(0, 0)], 5.0, cfg.traffic)
-    # each view's own nuisances (nuisance.py), from a stream nothing else draws from; None: the views share them
+    # each view's own nuisances (nuisance.py), from a stream nothing else draws from; None: no such nuisances
     view_a, view_s = ((None, None) if cfg.view_nuisance is None else
                       (nuisance.draw(r_view, cfg.view_nuisance), nuisance.draw(r_view, cfg.view_nuisance)))
 
@@ -86,7 +86,7 @@ def render_pair(cfg: SynthConfig, seed: int, split: str, index: int, sphere: boo
     if view_s is not None:
         horizon = nuisance.horizon_with_pitch(horizon, view_s.pitch_deg, h, w)
         height *= view_s.height_factor
-        street_extra = dict(fog_dist=450.0 * view_s.fog_factor, class_gains=view_s.class_gains)
+        street_extra = dict(fog_dist=FOG_DIST_M * view_s.fog_factor, class_gains=view_s.class_gains)
     az, tan_el = panorama_rays(h, w, horizon)
     rgb_s, cls_s, _ = render_street(world_s, Lighting(world_s, cond_s.sun), Sky(r_sky, cond_s.sun),
                                     (0.0, 0.0, height), az, tan_el, cond_s.season, **street_extra)

@@ -9,9 +9,11 @@ from .raymarch import march, sample_distances
 from .sky import Sky
 from .world import World
 
+FOG_DIST_M = 450.0  # the haze's e-folding distance: 1 - exp(-d / FOG_DIST_M) of a hit's colour is haze
+
 
 def render_street(world: World, light: Lighting, sky: Sky, cam_xyz, az_deg: np.ndarray, tan_el: np.ndarray,
-                  season: float, fog_dist: float = 450.0, d_max: float | None = None,
+                  season: float, fog_dist: float = FOG_DIST_M, d_max: float | None = None,
                   class_gains: np.ndarray | None = None):
     """Rays given by az_deg (W,) and tan_el (H, W) or (H, 1) -> (rgb float H x W x 3 in [0,1], cls H x W,
     dist H x W horizontal metres, inf for sky). d_max: how far the rays are marched; by default the radius that

@@ -32,6 +32,7 @@ import torch
 
 from geoloc.data.geo import haversine_m
 from geoloc.data.io import read_rgb
+from geoloc.gallery.places import read_places
 from geoloc.synthetic.city import build_city, render_tiles
 from geoloc.synthetic.world_config import resolve
 from geoloc.tasks.crossview.encoder import CrossViewEncoder
@@ -60,12 +61,13 @@ def encode_tiles(encoders: list[CrossViewEncoder], tiles) -> list[torch.Tensor]:
 
 
 def gallery_tiles(encoder: CrossViewEncoder, gallery: Path) -> tuple[torch.Tensor, np.ndarray]:
-    """The saved gallery's tiles encoded, and their (lat, lon)."""
-    root = Path(json.loads((gallery / "gallery.json").read_text())["root"])
-    refs = [json.loads(line) for line in (gallery / "references.jsonl").read_text().splitlines()]
+    """The saved gallery's tiles (read and checked as the localizer reads them) encoded, and their (lat, lon)."""
+    places = read_places(gallery, json.loads((gallery / "gallery.json").read_text()))
+    if places.kind != "latlon":
+        raise SystemExit(f"{gallery}: the routes' truths are lat/lon, but this gallery's positions are {places.kind}")
     size = decode_size(encoder.data, "aerial")
-    descriptors = encode_tiles([encoder], (read_rgb(root / r["path"], size) for r in refs))[0]
-    return descriptors, np.array([[r["lat"], r["lon"]] for r in refs])
+    descriptors = encode_tiles([encoder], (read_rgb(places.root / path, size) for path in places.references))[0]
+    return descriptors, places.reference_positions
 
 
 def route_frames(encoder: CrossViewEncoder, routes: Path, heading: float) -> tuple[torch.Tensor, np.ndarray]:

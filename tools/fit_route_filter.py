@@ -13,31 +13,26 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from geoloc.apps.localize.localizer import Localizer
 from geoloc.apps.localize.route import route_plane
-from geoloc.gallery import POSITION_KEYS
+from geoloc.data.io import read_rgb
 from geoloc.sequence.fit import fit_answer_model
 from geoloc.sequence.particle_filter import FilterConfig
 
 
-def held_out_answers(localizer: Localizer, gallery: Path, topk: int, heading: float | None):
-    """(FrameAnswer list, truths (N, 2) on the route plane) for every line of the gallery's queries.jsonl."""
-    plane = route_plane(localizer.places, FilterConfig())
-    keys = POSITION_KEYS[plane.kind]
-    root = Path(json.loads((gallery / "gallery.json").read_text())["root"])
+def held_out_answers(localizer: Localizer, topk: int, heading: float | None):
+    """(FrameAnswer list, truths (N, 2) on the route plane) for every query of the localizer's gallery
+    (queries.jsonl, as read and checked with the gallery), its images read under the gallery's root."""
+    places = localizer.places
+    plane = route_plane(places, FilterConfig())
     query = localizer.parse(topk=topk, heading=heading)
     answers, truths = [], []
-    for line in (gallery / "queries.jsonl").read_text().splitlines():
-        record = json.loads(line)
-        image = cv2.imread(str(root / record["path"]))
-        if image is None:
-            raise SystemExit(f"cannot read query image {root / record['path']} (from {gallery / 'queries.jsonl'})")
-        result = localizer.localize(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), query)
+    for path, line in places.queries.items():
+        result = localizer.localize(read_rgb(places.root / path), query)
         answers.append(plane.answer(result))
-        truths.append(plane.to_plane([record[k] for k in keys]))
+        truths.append(plane.to_plane(places.position_of(line)))
     return answers, np.stack(truths)
 
 
@@ -50,10 +45,8 @@ def main(argv=None) -> None:
     p.add_argument("--radius", type=float, default=25.0, help="metres: a tile centre this near the truth is right")
     p.add_argument("--out", type=Path, default=None, help="also write the fit as JSON here")
     args = p.parse_args(argv)
-    if not (args.gallery / "queries.jsonl").is_file():
-        raise SystemExit(f"{args.gallery} has no queries.jsonl: save the gallery with evaluate.py gallery.save=DIR")
     localizer = Localizer.load(args.ckpt, str(args.gallery), device="cpu")
-    answers, truths = held_out_answers(localizer, args.gallery, args.topk, args.heading)
+    answers, truths = held_out_answers(localizer, args.topk, args.heading)
     model = fit_answer_model(answers, truths, args.radius)
     print(f"{model.answers} held-out queries, {model.hits} with a tile within {model.radius_m:g} m in the top-"
           f"{args.topk}; {model.right_scores} near and {model.wrong_scores} other tiles' scores", file=sys.stderr)

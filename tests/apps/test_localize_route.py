@@ -129,7 +129,7 @@ def test_fit_route_filter_answers_every_held_out_query_on_the_route_plane(galler
     spec.loader.exec_module(tool)
     _, ckpt, folder = gallery
     lines = [json.loads(line) for line in (folder / "queries.jsonl").read_text().splitlines()]
-    answers, truths = tool.held_out_answers(Localizer.load(str(ckpt), str(folder), device="cpu"), folder, 3, None)
+    answers, truths = tool.held_out_answers(Localizer.load(str(ckpt), str(folder), device="cpu"), 3, None)
     assert len(answers) == len(lines) == 8 and all(len(a) == 3 for a in answers)
     assert np.allclose(truths, [[q["x_m"], q["y_m"]] for q in lines])
     # a radius that makes about half the answers hits: the nearest tile's distance, at its median over the answers

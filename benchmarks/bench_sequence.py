@@ -22,11 +22,11 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import numpy as np
 
-from geoloc.sequence import FilterConfig, SimulatedGallery, SimulationConfig, localize_route
+from geoloc.sequence import FilterConfig, SimulatedGallery, SimulationConfig
+from geoloc.sequence.route_scores import RouteCase, score_routes
 
 COLUMNS = ("single within 25 m", "last within 25 m", "ratio", "region", "area (ha)", "ellipse", "ellipse area (ha)",
            "recover", "first wrong: recover", "ms / frame")
@@ -41,31 +41,11 @@ def run(hit_prob: float, seed: int, args) -> dict:
                           temperature=simulation.matched_temperature, distance_sigma=simulation.distance_noise,
                           heading_sigma_deg=simulation.heading_noise_deg)
     rng = np.random.default_rng(1000 + seed)
-    single, last, region, area, ellipse, ellipse_area, wrong_any, wrong_first = [], [], [], [], [], [], [], []
-    seconds = 0.0
-    for r in range(args.routes):
-        route = gallery.route(rng)
-        start = time.perf_counter()
-        estimate = localize_route(route.answers, route.odometry, gallery.extent, config, seed=seed * 100_000 + r)[-1]
-        seconds += time.perf_counter() - start
-        top1 = np.array([np.hypot(*(a.centres[0] - x)) for a, x in zip(route.answers, route.truth)])
-        truth = route.truth[-1]
-        found = bool(np.hypot(*(estimate.position - truth)) <= 25.0)
-        single += list(top1 <= 25.0)
-        last.append(found)
-        region.append(estimate.contains(truth))
-        area.append(estimate.region_area_m2() / 1e4)
-        ellipse.append(estimate.in_ellipse(truth))
-        ellipse_area.append(estimate.ellipse_area_m2() / 1e4)
-        if (top1[:-1] > 50.0).any():
-            wrong_any.append(found)
-        if top1[0] > 50.0:
-            wrong_first.append(found)
-    single_rate, last_rate = float(np.mean(single)), float(np.mean(last))
-    return dict(zip(COLUMNS, (single_rate, last_rate, last_rate / single_rate, float(np.mean(region)),
-                              float(np.median(area)), float(np.mean(ellipse)), float(np.median(ellipse_area)),
-                              float(np.mean(wrong_any)), float(np.mean(wrong_first)),
-                              1000 * seconds / (args.routes * simulation.frames))))
+    cases = [RouteCase(route.answers, route.odometry, route.truth)
+             for route in (gallery.route(rng) for _ in range(args.routes))]
+    s = score_routes(cases, gallery.extent, config, seed_of=lambda r: seed * 100_000 + r)
+    return dict(zip(COLUMNS, (s.single, s.last, s.ratio, s.region, s.region_ha, s.ellipse, s.ellipse_ha, s.recover,
+                              s.first_wrong, s.ms_per_frame)))
 
 
 def main() -> None:

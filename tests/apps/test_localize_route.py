@@ -122,14 +122,17 @@ def test_fit_route_filter_answers_every_held_out_query_on_the_route_plane(galler
 
     from conftest import REPO
     from geoloc.apps.localize.localizer import Localizer
+    from geoloc.apps.localize.route import route_plane
     from geoloc.sequence.fit import fit_answer_model
+    from geoloc.sequence.particle_filter import FilterConfig
 
     spec = importlib.util.spec_from_file_location("fit_route_filter", REPO / "tools" / "fit_route_filter.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     _, ckpt, folder = gallery
     lines = [json.loads(line) for line in (folder / "queries.jsonl").read_text().splitlines()]
-    answers, truths = tool.held_out_answers(Localizer.load(str(ckpt), str(folder), device="cpu"), 3, None)
+    localizer = Localizer.load(str(ckpt), str(folder), device="cpu")
+    answers, truths = tool.held_out_answers(localizer, route_plane(localizer.places, FilterConfig()), 3, None)
     assert len(answers) == len(lines) == 8 and all(len(a) == 3 for a in answers)
     assert np.allclose(truths, [[q["x_m"], q["y_m"]] for q in lines])
     # a radius that makes about half the answers hits: the nearest tile's distance, at its median over the answers
@@ -145,3 +148,100 @@ def test_fit_route_filter_answers_every_held_out_query_on_the_route_plane(galler
     assert capsys.readouterr().out.strip() == (f"route.wrong_answer_prob={model.wrong_answer_prob:.4f} "
                                                f"route.temperature={model.temperature:.4f}")
     assert json.loads((folder.parent / "fit.json").read_text())["hits"] == model.hits
+
+
+def load_tool(name: str):
+    import importlib.util
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    return tool
+
+
+def write_routes(root, folder, groups=("A", "B"), count=10) -> dict:
+    """folder/<group>/route_NNNN: two frames each, the gallery's split panorama 13 + (k mod 8) standing still (zero
+    odometry), truth.csv its x/y from positions.csv; -> {route folder: truth (x, y)}."""
+    table = {row.split(",")[0]: row.split(",")[1:] for row in (root / "positions.csv").read_text().splitlines()[1:]}
+    truths = {}
+    for group in groups:
+        for k in range(count):
+            route = folder / group / f"route_{k:04d}"
+            route.mkdir(parents=True)
+            name = f"streetview/panos/{13 + k % 8:07d}.jpg"
+            for i in range(2):
+                shutil.copy(root / name, route / f"frame_{i:03d}.jpg")
+            (route / "odometry.csv").write_text(odometry_text([0.0, 0.0], [0.0, 0.0]))
+            x, y = (float(v) for v in table[name])
+            (route / "truth.csv").write_text(f"frame,x_m,y_m\n0,{x!r},{y!r}\n1,{x!r},{y!r}\n")
+            truths[route] = np.array([x, y])
+    return truths
+
+
+def test_evaluate_routes_scores_the_selected_routes_as_their_frames_are_answered(gallery, tmp_path, capsys):  # noqa: F811
+    from geoloc.apps.localize.localizer import Localizer
+    from geoloc.apps.localize.route_cases import filter_config, parse_ids, route_folders
+
+    root, ckpt, folder = gallery
+    truths = write_routes(root, tmp_path / "routes")
+    assert parse_ids("0-2,5") == [0, 1, 2, 5]
+    with pytest.raises(ValueError, match="ranges like"):
+        parse_ids("3-1")
+    picked = route_folders(tmp_path / "routes", [1, 7])
+    assert [f"{p.parent.name}/{p.name}" for p in picked] == ["A/route_0001", "A/route_0007", "B/route_0001",
+                                                             "B/route_0007"]
+    with pytest.raises(FileNotFoundError, match="no <group>/route_NNNN"):
+        route_folders(tmp_path / "routes", [99])
+    with pytest.raises(ValueError, match="route.KEY=VALUE"):
+        filter_config(["route.no_such_key=1"])
+    assert filter_config(["route.particles=300", "route.tile_sigma_m=30"]).particles == 300
+    out = tmp_path / "scores.json"
+    load_tool("evaluate_routes").main([str(ckpt), str(folder), str(tmp_path / "routes"), "route.particles=300",
+                                       "--ids", "0-1", "--topk", "3", "--heading", "0", "--out", str(out)])
+    record = json.loads(out.read_text())
+    assert record["scores"]["routes"] == 4 and record["route"]["particles"] == 300
+    # the single-frame share, brute force: each frame's own answer (refined or top-1 tile) within 25 m of its truth
+    localizer = Localizer.load(str(ckpt), str(folder), device="cpu")
+    query = localizer.parse(topk=3, heading=0.0)
+    near = []
+    for route in route_folders(tmp_path / "routes", [0, 1]):
+        for frame in sorted(route.glob("frame_*.jpg")):
+            from geoloc.data.io import read_rgb
+
+            result = localizer.localize(read_rgb(frame), query)
+            own = result.refined_position or result.position
+            near.append(np.hypot(own["x_m"] - truths[route][0], own["y_m"] - truths[route][1]) <= 25.0)
+    assert record["scores"]["single"] == pytest.approx(np.mean(near))
+    assert "| routes |" in capsys.readouterr().out
+
+
+def test_fit_route_filter_chooses_the_settings_on_the_held_out_routes(gallery, tmp_path, capsys):  # noqa: F811
+    root, ckpt, folder = gallery
+    write_routes(root, tmp_path / "routes")
+    tool = load_tool("fit_route_filter")
+    with pytest.raises(SystemExit):
+        tool.main([str(ckpt), str(folder), "--routes", str(tmp_path / "routes")])  # no held-out numbers
+    capsys.readouterr()
+    out = tmp_path / "fit.json"
+    # the temperature given (a one-epoch model's scores need not rank the tiles), q from the queries, the grid tried
+    tool.main([str(ckpt), str(folder), "route.particles=300", "route.temperature=1.0", "--topk", "3", "--radius",
+               "600", "--routes", str(tmp_path / "routes"), "--ids", "0-9", "--grid", "wrong_answer_prob=0.5,0.9",
+               "tile_sigma_m=25,40", "--out", str(out)])
+    record = json.loads(out.read_text())
+    tried = record["route_scores"]
+    assert [(t["wrong_answer_prob"], t["tile_sigma_m"]) for t in tried] == [(0.5, 25.0), (0.5, 40.0), (0.9, 25.0),
+                                                                         (0.9, 40.0)]
+    assert all(t["routes"] == 20 for t in tried)
+    calibrated = [t for t in tried if t["region"] >= 0.95]
+    assert record["route_calibrated"] == bool(calibrated)
+    if calibrated:
+        best = max(t["last"] for t in calibrated)
+        assert any(t["last"] == best and all(t[k] == v for k, v in record["route_settings"].items())
+                   for t in calibrated)
+    assert record["temperature"] == 1.0 and record["answers"] == 8
+    printed = capsys.readouterr().out.strip()
+    assert printed.startswith(f"route.wrong_answer_prob={record['route_settings']['wrong_answer_prob']:.4f} "
+                              "route.temperature=1.0000 ")
+    assert printed.endswith(f"route.tile_sigma_m={record['route_settings']['tile_sigma_m']:g}")

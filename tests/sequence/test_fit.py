@@ -66,3 +66,15 @@ def test_recovers_a_simulated_hit_rate_and_temperature():
     model = fit_answer_model(answers, truths, radius)
     assert model.wrong_answer_prob == pytest.approx(1 - config.hit_prob, abs=0.03)
     assert model.temperature == pytest.approx(config.matched_temperature, rel=0.15)
+
+
+def test_a_given_temperature_is_kept_and_only_q_is_fitted():
+    truths = np.zeros((3, 2))
+    flat = [FrameAnswer([[0.0, 0.0], [500.0, 0.0]], [0.5, 0.5]), FrameAnswer([[400.0, 0.0], [500.0, 0.0]], [0.5, 0.5]),
+            FrameAnswer([[10.0, 0.0], [500.0, 0.0]], [0.5, 0.5])]
+    with pytest.raises(ValueError, match="do not rank the tiles"):
+        fit_answer_model(flat, truths)
+    model = fit_answer_model(flat, truths, temperature=1.0)
+    assert model.temperature == 1.0 and model.hits == 2 and model.wrong_answer_prob == pytest.approx(1 / 3)
+    with pytest.raises(ValueError, match="above 0"):
+        fit_answer_model(flat, truths, temperature=0.0)

@@ -36,7 +36,7 @@ def main(argv=None) -> None:
     p.add_argument("--heading", type=float, default=None, help="the frames' heading when it is known (0: north up)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=None)
-    args = p.parse_args(argv)
+    args = p.parse_intermixed_args(argv)
     config = filter_config(args.settings)
     folders = route_folders(args.routes, None if args.ids is None else parse_ids(args.ids))
     localizer = Localizer.load(args.ckpt, str(args.gallery), device="cpu")

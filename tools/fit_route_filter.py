@@ -2,8 +2,8 @@
 gallery's held-out queries (queries.jsonl: the split's queries with their positions, as `evaluate.py gallery.save=`
 writes them) answered like the route's frames will be (geoloc/sequence/fit.py; docs/sequence.md). With --routes,
 the filter's settings are then chosen on held-out routes (fit_route_settings): of a grid (by default q alone), the
-setting whose 95% region holds the truth at the last frame on at least 95% of them and whose last frame is most
-often within 25 m; the temperature stays the queries' fit.
+setting with the smallest median 95% region among those whose region holds the truth at the last frame on at least
+95% of them; the temperature stays the queries' fit.
 
     python tools/fit_route_filter.py CKPT GALLERY [--topk 10] [--heading 0] [--radius 25] [--out fit.json]
         [--routes ROUTES --ids 25-49 [--grid wrong_answer_prob=0.5,0.8 tile_sigma_m=25,35]]
@@ -56,7 +56,7 @@ def main(argv=None) -> None:
     p.add_argument("--grid", nargs="+", default=[f"{k}={','.join(map(str, v))}" for k, v in ROUTE_GRID.items()],
                    help="with --routes: FilterConfig fields and the values to try, NAME=v1,v2,...")
     p.add_argument("--out", type=Path, default=None, help="also write the fit as JSON here")
-    args = p.parse_args(argv)
+    args = p.parse_intermixed_args(argv)
     if args.routes is not None and args.ids is None:
         p.error("--routes needs --ids: the held-out routes' numbers, none of them a route to be evaluated")
     config = filter_config(args.settings)

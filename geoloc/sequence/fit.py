@@ -19,9 +19,10 @@ apart retrieve the same tiles, right and wrong alike, so a filter with that q tr
 its 95% region holds the truth less often than it says (docs/sequence.md measures it). fit_route_settings chooses
 the filter's settings on held-out routes instead (routes the evaluation does not use, with their truth): of a grid
 of settings (q, tile_sigma_m, ...), those whose 95% region holds the truth at the last frame on at least `level`
-of the routes are calibrated, and of them the one whose last frame is most often within 25 m is chosen (ties: the
-smaller median region). A larger q flattens each frame's likelihood and a larger tile_sigma_m widens each answer:
-both widen the region, and cost accuracy past some point.
+of the routes are calibrated, and of them the one with the smallest median region is chosen (ties: the one whose
+last frame is more often within 25 m): the tightest region that is still honest. A larger q flattens each frame's
+likelihood and a larger tile_sigma_m widens each answer: both widen the region. A setting whose region is the whole
+gallery on most routes covers the truth trivially, and its area rules it out.
 """
 
 from __future__ import annotations
@@ -115,8 +116,8 @@ def fit_route_settings(routes: Sequence[RouteCase], extent, config: FilterConfig
                        seed: int = 0) -> RouteFit:
     """Every combination of the `grid`'s values (FilterConfig fields, `config` for the rest) scored on the held-out
     `routes` over `extent` (route r with seed seed + r); of those whose `level` region holds the truth at the last
-    frame on at least `level` of them, the one most often within 25 m at the last frame (ties: the smaller median
-    region); with calibrated False, the one covering most when none does."""
+    frame on at least `level` of them, the one with the smallest median region (ties: the one more often within 25 m
+    at the last frame); with calibrated False, the one covering most when none does."""
     known = {f.name: f.type for f in fields(FilterConfig)}
     if not grid or any(name not in known or len(values) == 0 for name, values in grid.items()):
         raise ValueError(f"the grid maps FilterConfig fields ({', '.join(sorted(known))}) to values to try; got "
@@ -134,7 +135,7 @@ def fit_route_settings(routes: Sequence[RouteCase], extent, config: FilterConfig
         scores.append((settings, score_routes(routes, extent, trial, lambda r: seed + r, level=level)))
     calibrated = [(settings, s) for settings, s in scores if s.region >= level]
     if calibrated:
-        best = max(calibrated, key=lambda item: (item[1].last, -item[1].region_ha))
+        best = min(calibrated, key=lambda item: (item[1].region_ha, -item[1].last))
     else:
-        best = max(scores, key=lambda item: (item[1].region, item[1].last))
+        best = max(scores, key=lambda item: (item[1].region, -item[1].region_ha))
     return RouteFit(best[0], bool(calibrated), level, scores)

@@ -58,8 +58,9 @@ def route_folders(routes: Path, ids: Collection[int] | None = None) -> list[Path
                    if folder.is_dir() and (match := ROUTE_NAME.fullmatch(folder.name))
                    and (ids is None or int(match[1]) in ids))
     if not found:
-        raise FileNotFoundError(f"{routes} holds no <group>/route_NNNN folders{'' if ids is None else ' with those numbers'}"
-                                ": give the routes folder (python -m geoloc.synthetic.routes writes ROOT/routes)")
+        which = "" if ids is None else " with those numbers"
+        raise FileNotFoundError(f"{routes} holds no <group>/route_NNNN folders{which}: give the routes folder "
+                                "(python -m geoloc.synthetic.routes writes ROOT/routes)")
     return [folder for _, _, folder in found]
 
 

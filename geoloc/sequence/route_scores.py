@@ -31,13 +31,12 @@ from geoloc.sequence.particle_filter import FilterConfig, localize_route
 @dataclass(frozen=True)
 class RouteCase:
     """One route with its truth: answers (F FrameAnswers), odometry (F rows), truth (F, 2) metres on the answers'
-    plane, single (F, 2) each frame's own answer on that plane (None: the top-1 tile centre); name for reports."""
+    plane, single (F, 2) each frame's own answer on that plane (None: the top-1 tile centre)."""
 
     answers: list[FrameAnswer]
     odometry: Odometry
     truth: np.ndarray
     single: np.ndarray | None = None
-    name: str = ""
 
     def own_answers(self) -> np.ndarray:
         """(F, 2) each frame's own answer: `single`, or the top-1 tile centre."""

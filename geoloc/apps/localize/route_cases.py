@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import re
 from collections.abc import Collection
-from dataclasses import fields, replace
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from geoloc.apps.localize.command import images_of
 from geoloc.apps.localize.route import RoutePlane, truth_of
+from geoloc.config import ConfigError, checked
 from geoloc.data.io import read_rgb
 from geoloc.gallery import POSITION_KEYS
 from geoloc.sequence.odometry import ODOMETRY_FILE, read_odometry
@@ -39,16 +41,16 @@ def parse_ids(text: str) -> list[int]:
 
 
 def filter_config(settings: list[str]) -> FilterConfig:
-    """route.KEY=VALUE strings -> FilterConfig (ValueError naming an unknown key or a bad value)."""
-    types = {f.name: f.type for f in fields(FilterConfig)}
-    values = {}
-    for setting in settings:
-        key, sep, value = setting.partition("=")
-        name = key.removeprefix("route.")
-        if not sep or not key.startswith("route.") or name not in types:
-            raise ValueError(f"{setting!r}: give route.KEY=VALUE with KEY one of {', '.join(types)}")
-        values[name] = int(value) if types[name] in ("int", int) else float(value)
-    return replace(FilterConfig(), **values)
+    """route.KEY=VALUE strings -> FilterConfig, checked as localize.py checks its route.* keys (geoloc.config.checked:
+    an unknown key, a wrong type or a value out of range is refused, naming it)."""
+    outside = [setting for setting in settings if not setting.startswith("route.") or "=" not in setting]
+    try:
+        if outside:
+            raise ConfigError(f"{', '.join(map(repr, outside))} is not a route.* setting")
+        return checked(OmegaConf.from_dotlist(settings).get("route", {}), FilterConfig, "route")
+    except ConfigError as err:
+        raise ConfigError(f"give route.KEY=VALUE with KEY one of {', '.join(f.name for f in fields(FilterConfig))}: "
+                          f"{err}") from None
 
 
 def route_folders(routes: Path, ids: Collection[int] | None = None) -> list[Path]:
@@ -81,5 +83,4 @@ def route_case(localizer, plane: RoutePlane, folder: Path, query) -> RouteCase:
         answers.append(plane.answer(result))
         own = result.refined_position or result.position
         single.append(plane.to_plane([own[k] for k in keys], result.topk[0]["row"]))
-    group = folder.parent.name
-    return RouteCase(answers, odometry, truth, np.stack(single), f"{group}/{folder.name}")
+    return RouteCase(answers, odometry, truth, np.stack(single))

@@ -49,7 +49,11 @@ Hyperparameters (FilterConfig), defaults in brackets:
 - mode_radius_m [40.0]: the radius of the mean-shift window that finds the main mode, the point estimate;
 - ring_samples [1000]: draws standing for the rings in each frame's estimate (they are not carried forward);
 - prune_mass [1e-9]: a ring holding less of the posterior joins the uniform part; max_rings [5000]: at most this
-  many rings are kept, the lightest joining the uniform part.
+  many rings are kept, the lightest joining the uniform part;
+- fuse_every_m [0]: weigh by a frame's answer only once the odometry has gone this far since the last answer weighed
+  (the first frame's always is); the frames between only move the filter. Frames a few metres apart retrieve the
+  same tiles, right or wrong, so their answers are not the independent measurements the product of likelihoods
+  assumes; fusing every ~tile lattice step keeps the answers that are (docs/sequence.md measures it). 0: every frame.
 """
 
 from __future__ import annotations
@@ -84,6 +88,7 @@ class FilterConfig:
     ring_samples: int = 1000
     prune_mass: float = 1e-9
     max_rings: int = 5000
+    fuse_every_m: float = 0.0
 
     def __post_init__(self):
         for name in ("particles", "ring_samples", "max_rings"):
@@ -98,6 +103,9 @@ class FilterConfig:
         for name in ("distance_sigma", "heading_sigma_deg", "position_jitter_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} is a standard deviation, at least 0; got {getattr(self, name)}")
+        if not 0 <= self.fuse_every_m < float("inf"):
+            raise ValueError(f"fuse_every_m is a distance in metres, at least 0 (0: every frame), got "
+                             f"{self.fuse_every_m}")
         if not 0 < self.wrong_answer_prob < 1:
             raise ValueError(f"wrong_answer_prob is a probability strictly between 0 and 1, got "
                              f"{self.wrong_answer_prob}")
@@ -125,13 +133,16 @@ class ParticleFilter:
         self.uniform_mass = 1.0  # b: the posterior probability of the uniform part
         self.frames = 0
 
-    def step(self, motion: Motion, answer: FrameAnswer) -> FrameEstimate:
-        """Move by `motion` (the odometry into this frame; ignored at the first frame), weigh by `answer`."""
+    def step(self, motion: Motion, answer: FrameAnswer | None) -> FrameEstimate:
+        """Move by `motion` (the odometry into this frame; ignored at the first frame), weigh by `answer` (None:
+        move only)."""
         cfg = self.config
         if self.frames:
             self._move(motion)
             self.rings.move(motion.distance_m, motion.heading_change_deg)
         self.frames += 1
+        if answer is None:
+            return self._estimate()
         mixture = answer_mixture(answer, cfg.temperature, cfg.tile_sigma_m, cfg.refined_sigma_m)
         q, area = cfg.wrong_answer_prob, self.extent.area_m2
         floor = q / area  # p(z | x) away from every tile of the answer
@@ -222,9 +233,23 @@ class ParticleFilter:
 def localize_route(answers: Sequence[FrameAnswer], odometry: Odometry, extent: GalleryExtent,
                    config: FilterConfig = FilterConfig(), seed: int = 0) -> list[FrameEstimate]:
     """Each frame's estimate for a route of F frames: answers[i] is frame i's, odometry row i the motion into it.
-    The same seed gives the same estimates."""
+    An answer is weighed by when config.fuse_every_m allows (fused_frames). The same seed gives the same
+    estimates."""
     if len(answers) != len(odometry):
         raise ValueError(f"{len(answers)} frame answers but {len(odometry)} odometry rows: the route needs one of "
                          "each per frame")
     route = ParticleFilter(config, extent, np.random.default_rng(seed))
-    return [route.step(odometry.motion(i), answer) for i, answer in enumerate(answers)]
+    fused = set(fused_frames(odometry, config.fuse_every_m))
+    return [route.step(odometry.motion(i), answer if i in fused else None) for i, answer in enumerate(answers)]
+
+
+def fused_frames(odometry: Odometry, fuse_every_m: float) -> list[int]:
+    """The frames whose answers the filter weighs by: frame 0, then each frame at which the odometry has gone at
+    least fuse_every_m metres since the last one (every frame when fuse_every_m is 0)."""
+    chosen, travelled = [0], 0.0
+    for i in range(1, len(odometry)):
+        travelled += odometry.motion(i).distance_m
+        if travelled >= fuse_every_m:
+            chosen.append(i)
+            travelled = 0.0
+    return chosen

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from geoloc.sequence import (FilterConfig, FrameAnswer, GalleryExtent, Odometry, SimulatedGallery, SimulationConfig,
                              localize_route)
 from geoloc.sequence.measurement import answer_mixture
-from geoloc.sequence.particle_filter import systematic_resample
+from geoloc.sequence.particle_filter import fused_frames, systematic_resample
 
 # --- against brute force ----------------------------------------------------------------------------------------
 
@@ -198,3 +199,36 @@ def test_a_route_needs_one_answer_per_odometry_row():
     route = gallery.route(np.random.default_rng(0))
     with pytest.raises(ValueError, match="3 frame answers but 4 odometry rows"):
         localize_route(route.answers[:3], route.odometry, gallery.extent)
+
+
+# --- fusing every so many metres ----------------------------------------------------------------------------------
+
+
+def test_frames_are_fused_once_the_odometry_has_gone_far_enough():
+    odometry = Odometry(np.array([0.0, 10.0, 10.0, 4.0, 12.0, 30.0, 1.0]), np.zeros(7))
+    assert fused_frames(odometry, 0.0) == list(range(7))
+    assert fused_frames(odometry, 20.0) == [0, 2, 5]  # 20 m; then 4 + 12 = 16, short; + 30
+    assert fused_frames(odometry, 25.0) == [0, 4, 5]  # 10 + 10 + 4 + 12 = 36; 30
+    assert fused_frames(odometry, 1000.0) == [0]
+
+
+def test_an_unfused_frame_changes_nothing():
+    """With fuse_every_m 25 and frames 10 m apart, frames 1, 2, 4, 5, ... are not weighed: giving them a wildly wrong
+    answer leaves every estimate as it was (the same seed), whereas with every frame fused it moves them."""
+    simulation = SimulationConfig(hit_prob=1.0, frames=8)
+    gallery = SimulatedGallery(simulation)
+    route = gallery.route(np.random.default_rng(1))
+    skipped = [i for i in range(8) if i not in fused_frames(route.odometry, 25.0)]
+    assert skipped == [1, 2, 4, 5, 7]
+    wrong = [far_answer(gallery, route.truth[i]) if i in skipped else a for i, a in enumerate(route.answers)]
+    sparse = matched_config(simulation, particles=500, ring_samples=200, fuse_every_m=25.0, wrong_answer_prob=0.5)
+    for a, b in zip(*(localize_route(ans, route.odometry, gallery.extent, sparse, seed=3) for ans in (route.answers, wrong))):
+        np.testing.assert_array_equal(a.samples, b.samples)
+    every = replace(sparse, fuse_every_m=0.0)
+    clean, pulled = (localize_route(ans, route.odometry, gallery.extent, every, seed=3) for ans in (route.answers, wrong))
+    assert not np.array_equal(clean[1].samples, pulled[1].samples)
+
+
+def test_fuse_every_m_must_be_a_distance():
+    with pytest.raises(ValueError, match="fuse_every_m is a distance"):
+        FilterConfig(fuse_every_m=-1.0)

@@ -37,7 +37,7 @@ The rules. Each resolves a reference one way only, so that a correct tree passes
    workplace's design or style files, not to an absolute path of the machine the docs were written on.
 
 Every list of gallery kinds (four or more kind names, starting with flat) names every kind the registry has
-(geoloc.eval.search_index.KINDS). The self-tests feed the checkers one broken reference of each kind, and real
+(geoloc.eval.index_kinds.KINDS). The self-tests feed the checkers one broken reference of each kind, and real
 references and placeholders that must pass.
 """
 
@@ -410,7 +410,7 @@ def test_the_checker_reports_each_kind_of_drift(kind, line):
 
 
 def test_the_checker_passes_real_references_and_placeholders():
-    fine = ("tests/launch/test_resume.py, [usage](usage.md), `geoloc.engine.checkpoint`, geoloc.eval.search_index.KINDS, "
+    fine = ("tests/launch/test_resume.py, [usage](usage.md), `geoloc.engine.checkpoint`, geoloc.eval.index_kinds.KINDS, "
             "geoloc/apps/localize/command.py:localize, `scoring.rank`, `config_nodes()`, `trainer.device`, "
             "`gallery.json`, outputs/crossview/<date>/best.pt, geoloc/conf/experiment/*.yaml, gallery.save=DIR/SHARD_i, "
             "VIGOR's `dataloader.py`, CCVPE's `ori_noise`, https://github.com/x/y/tests/z.py, `heading_steps`")
@@ -429,7 +429,7 @@ def kind_lists(text: str, kinds: tuple[str, ...]) -> list[tuple[int, set[str]]]:
 
 
 def test_every_list_of_gallery_kinds_names_them_all():
-    from geoloc.eval.search_index import KINDS
+    from geoloc.eval.index_kinds import KINDS
 
     assert kind_lists("kind: flat (exact) | ivfpq | pq_refine | hnsw", KINDS) == [(6, {"flat", "ivfpq", "pq_refine",
                                                                                       "hnsw"})]

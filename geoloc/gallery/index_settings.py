@@ -13,8 +13,8 @@ import torch
 
 from geoloc.config import ConfigError
 from geoloc.engine import distributed as dist
-from geoloc.eval.search_index import (KINDS, PQ_KINDS, GalleryIndex, IndexParams, import_faiss, sub_quantisers,
-                                      training_points)
+from geoloc.eval.index_kinds import KINDS, PQ_KINDS, IndexParams, import_faiss, sub_quantisers, training_points
+from geoloc.eval.search_index import GalleryIndex
 from geoloc.gallery.confidence import TOP1, calibrators, confidence_report, index_answers
 
 

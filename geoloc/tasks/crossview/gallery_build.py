@@ -40,7 +40,7 @@ from geoloc.eval.descriptors import check_descriptors, descriptor_spread, requir
 from geoloc.eval.keys import guarded
 from geoloc.eval.retrieval_metrics import index_metrics, split_plan
 from geoloc.eval.scoring import top_k
-from geoloc.eval.search_index import training_rows
+from geoloc.eval.index_kinds import training_rows
 from geoloc.gallery.confidence import NO_HOLDOUT, across_jobs, fit_top1, uncalibrated, with_positives, with_refiner
 from geoloc.gallery.folder import open_codebook, open_gallery, save_gallery
 from geoloc.gallery.index_settings import (GalleryConfig, build_index, empty_index, index_knobs, requested_knobs,

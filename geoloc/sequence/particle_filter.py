@@ -53,7 +53,8 @@ Hyperparameters (FilterConfig), defaults in brackets:
 - fuse_every_m [0]: weigh by a frame's answer only once the odometry has gone this far since the last answer weighed
   (the first frame's always is); the frames between only move the filter. Frames a few metres apart retrieve the
   same tiles, right or wrong, so their answers are not the independent measurements the product of likelihoods
-  assumes; fusing every ~tile lattice step keeps the answers that are (docs/sequence.md measures it). 0: every frame.
+  assumes. Measured on synthetic VIGOR routes (docs/sequence.md), fusing every 30 m made a lower q honest but gave
+  a larger region and no more answers within 25 m, so the default fuses every frame. 0: every frame.
 """
 
 from __future__ import annotations

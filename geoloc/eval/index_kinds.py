@@ -107,9 +107,13 @@ def training_rows(num: int, max_points: int = TRAIN_POINTS, seed: int = 0) -> to
     return torch.randperm(num, generator=torch.Generator().manual_seed(seed))[:max_points]
 
 
+def is_count(value) -> bool:
+    """An integer >= 1 (numpy's included; a bool is not one)."""
+    return not isinstance(value, bool) and isinstance(value, (int, np.integer)) and value >= 1
+
+
 def positive_ints(values: dict, what: str) -> dict:
-    bad = [f"{key}={value!r}" for key, value in values.items()
-           if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1]
+    bad = [f"{key}={value!r}" for key, value in values.items() if not is_count(value)]
     if bad:
         raise ValueError(f"{what} must be integers >= 1, got {', '.join(bad)}")
     return {key: int(value) for key, value in values.items()}
@@ -133,7 +137,6 @@ class IndexParams:
 
     def __post_init__(self):
         bad = [f"gallery.{f.name}={getattr(self, f.name)!r}" for f in fields(IndexParams)
-               if isinstance(getattr(self, f.name), bool) or not isinstance(getattr(self, f.name), (int, np.integer))
-               or getattr(self, f.name) < 1]
+               if not is_count(getattr(self, f.name))]
         if bad:
             raise ValueError(f"{', '.join(bad)}: the index knobs must be integers >= 1")

@@ -3,7 +3,7 @@ on one thread, at the refiner's input sides and with a known heading (1 bin) or 
 
     OMP_NUM_THREADS=1 python benchmarks/bench_refiner.py [--sides 64 128 256] [--bins 1 12 36] [--tiles 5] [--repeats 20]
         [--overlap mean|window] [--query-scale 1.13] [--kernel-frac 1.0] [--context 1] [--peak-smoothing 0.04]
-        [--cpu-precision bf16]
+        [--cpu-precision bf16] [--margin 0.25]
 
 Prints the median milliseconds of each setting, and the tile encoding alone (what a gallery could store once).
 --query-scale S matches with the ground scale as an input (the query's map drawn S times larger for every tile, as
@@ -11,7 +11,9 @@ refiner.query_extent_m does for tiles of one extent); 0 (the default) without it
 refiner.kernel_frac (the share of the query map's side matched) and refiner.context (extra dilated blocks in each
 encoder); the query's time includes reading each tile's answer (its position and mass within 5 m) with
 --peak-smoothing (refiner.peak_smoothing); --cpu-precision bf16 encodes under bfloat16 autocast, as a checkpoint
-trained with trainer.cpu_precision=bf16 is evaluated and served on the CPU (the matching stays float32).
+trained with trainer.cpu_precision=bf16 is evaluated and served on the CPU (the matching stays float32). --margin M
+is refiner.margin: each tile read with M of its side beyond each edge (4 channels, side + 2 round(M side / 2) * 2
+pixels across), the tiles already stitched (their reading is not timed).
 experiment=refine_vigor is --widths 32 --sides 128 --bins 1 --kernel-frac 1.0 --context 1 --peak-smoothing 0.04
 --cpu-precision bf16."""
 
@@ -24,6 +26,7 @@ import time
 import torch
 
 from geoloc import registry
+from geoloc.data.tile_context import margin_pixels
 from geoloc.engine.device import autocast
 import geoloc.models.refiners  # noqa: F401
 
@@ -53,6 +56,7 @@ def main() -> None:
     parser.add_argument("--context", type=int, default=0, help="refiner.context")
     parser.add_argument("--peak-smoothing", type=float, default=0.0, help="refiner.peak_smoothing")
     parser.add_argument("--cpu-precision", default="32", choices=["32", "bf16"], help="trainer.cpu_precision")
+    parser.add_argument("--margin", type=float, default=0.0, help="refiner.margin")
     args = parser.parse_args()
     scale = torch.full((args.tiles,), args.query_scale) if args.query_scale else None
     extent = torch.full((args.tiles, 2), 72.96)  # metres: the synthetic VIGOR tile
@@ -63,7 +67,11 @@ def main() -> None:
         refiner = registry.build("refiner", {"name": "correlation", "width": width, "channels": width,
                                              "overlap": args.overlap, "kernel_frac": args.kernel_frac,
                                              "context": args.context}).eval()
-        query, tiles = torch.randn(1, 3, side, side), torch.randn(args.tiles, 3, side, side)
+        wide = side + 2 * margin_pixels(side, args.margin)
+        query = torch.randn(1, 3, side, side)
+        tiles = torch.randn(args.tiles, 4 if args.margin else 3, wide, wide)
+        if args.margin:
+            tiles[:, 3] = 1.0  # covered everywhere
 
         def encoded_query():
             with autocast("32", torch.device("cpu"), args.cpu_precision):

@@ -202,19 +202,27 @@ def test_a_file_written_at_another_opset_is_refused(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_the_refiner_encoders_are_exported_and_match_torch(tmp_path):
+@pytest.mark.parametrize("margin", [0.0, 0.25])
+def test_the_refiner_encoders_are_exported_and_match_torch(tmp_path, margin):
     """A checkpoint with a refiner adds its two encoders (refine_query.onnx, refine_reference.onnx), which give
-    torch's feature maps at two batch sizes, and describes the matching in encoders.json."""
-    task = write_checkpoint(tmp_path / "best.pt", ["refiner=correlation", "refiner.channels=4", "refiner.width=4"]
-                            ).eval()
+    torch's feature maps at two batch sizes, and describes the matching in encoders.json; a refiner that reads its
+    tile with a margin (refiner.margin) takes the wider tile and its coverage channel."""
+    task = write_checkpoint(tmp_path / "best.pt", ["refiner=correlation", "refiner.channels=4", "refiner.width=4",
+                                                   f"refiner.margin={margin}"]).eval()
     spec = export(compose_export([f"ckpt={tmp_path / 'best.pt'}"]))
     entry = spec["refiner"]
     assert entry["name"] == "correlation" and entry["side"] == 32 and "matching" in entry
-    for side, encode in (("query", task.refiner.encode_query), ("reference", task.refiner.encode_reference)):
+    wide = 48 if margin else 32
+    assert entry["reference"]["input"]["shape"] == ["batch", 4 if margin else 3, wide, wide]
+    assert ("margin" in entry) == bool(margin)
+    for side, encode, shape in (("query", task.refiner.encode_query, (3, 32, 32)),
+                                ("reference", task.refiner.encode_reference, (4 if margin else 3, wide, wide))):
         session = ort.InferenceSession(str(tmp_path / "best_onnx" / entry[side]["file"]),
                                        providers=["CPUExecutionProvider"])
         for batch in (1, 3):
-            got, expected = run_both(encode, session, (3, 32, 32), batch)
-            assert got.shape == (batch, 4, 16, 16)
+            got, expected = run_both(encode, session, shape, batch)
+            assert got.shape == (batch, 4, shape[-1] // 2, shape[-1] // 2)
             assert np.abs(got - expected).max() < 1e-4
+            if len(shape) == 3 and shape[0] == 4:  # cells with some pixel not covered (channel 4 <= 0.5) are zero
+                assert (np.abs(got).sum(1) == 0).any() and (np.abs(got).sum(1) > 0).any()
         assert entry[side]["checked_against_torch"]["max_abs_diff"] < 1e-4

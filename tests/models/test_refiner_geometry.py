@@ -74,10 +74,13 @@ def test_one_query_expanded_over_its_tiles_scores_as_the_copied_query():
 
 def brute_correlate(query, reference, headings, kernel, overlap, offset=0.0):
     """correlate's definition, cell by cell: the rotated query's central window laid with its centre on every cell
-    corner of the reference map, the dot products summed over the window cells on the map, divided by how many
-    lie on it ("mean") or by the whole window ("window"), or less `offset` for each cell on the map, over the whole
-    window ("evidence")."""
+    corner of the tile (the reference map's central n x n, which a margin of (m - n) / 2 cells may surround), the dot
+    products summed over the window cells on the map that hold imagery (a non-zero vector), divided by how many
+    ("mean") or by the whole window ("window"), or less `offset` for each such cell, over the whole window
+    ("evidence")."""
     b, c, n, _ = query.shape
+    m = reference.shape[-1]
+    p = (m - n) // 2
     rotated = rotate_maps(query, headings)
     start, half = (n - kernel) // 2, kernel // 2
     out = torch.zeros(b, headings.numel(), n + 1, n + 1, dtype=torch.float64)
@@ -89,8 +92,8 @@ def brute_correlate(query, reference, headings, kernel, overlap, offset=0.0):
                     total, cells = 0.0, 0
                     for a in range(kernel):
                         for d in range(kernel):
-                            r, q = i - half + a, j - half + d
-                            if 0 <= r < n and 0 <= q < n:
+                            r, q = p + i - half + a, p + j - half + d
+                            if 0 <= r < m and 0 <= q < m and bool(reference[bi, :, r, q].abs().sum() > 0):
                                 total += float(window[:, a, d] @ reference[bi, :, r, q].double())
                                 cells += 1
                     if overlap == "evidence":

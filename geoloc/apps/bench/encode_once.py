@@ -8,7 +8,7 @@ from dataclasses import replace
 
 from geoloc.config import ConfigError
 from geoloc.tasks.crossview.crossview_config import parse_evaluation
-from geoloc.tasks.crossview.datasets import ViewImages, read_split
+from geoloc.tasks.crossview.datasets import ViewImages, read_split, reference_images
 from geoloc.tasks.crossview.crossview_run import evaluation_trainer
 
 PROTOCOL_KEYS = ("fov", "random_heading", "heading_steps")  # what may differ between the protocols of a test set
@@ -36,8 +36,7 @@ def score_protocols(task, stored, configs: list) -> tuple[list[dict], dict]:
     def outputs(images: ViewImages, name: str) -> dict:
         return trainer.validation_outputs(task, trainer.engine.loader(images, first.batch_size, train=False), name)
 
-    reference_view = "image" if split.aerial_queries else "aerial"
-    references = outputs(ViewImages(split.references, reference_view, first.data, refine=refine), "reference")
+    references = outputs(reference_images(split, first.data, refine), "reference")
     results = []
     for run in runs:
         task.validate_on(split, heading_search=run.data.random_heading)

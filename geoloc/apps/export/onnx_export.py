@@ -9,6 +9,8 @@ out/encoders.json    input names and shapes, preprocessing, output dim, opset, t
 A checkpoint with a refiner (docs/localisation.md) adds its two encoders, whose maps the refiner correlates:
 out/refine_query.onnx      the aligned query at the refiner's side: B×3×s×s -> B×C×n×n feature maps
 out/refine_reference.onnx  a tile at the refiner's side:             B×3×s×s -> B×C×n×n feature maps
+                           (with refiner.margin: the tile and its margin, B×4×s'×s' -> B×C×n'×n', encoders.json's
+                           "reference" entry says how the fourth channel and the margin are read)
 The correlation itself (an FFT over complex numbers, which torch.onnx does not export) is written out in
 encoders.json's "refiner" entry; it is geoloc.models.refiners.correlation.correlate.
 """
@@ -137,8 +139,9 @@ def export_refiner(encoder: CrossViewEncoder, tmp: Path, opset: int | None) -> d
              "matching": ("log P(heading k, position) = log_softmax over (k, position) of scale x the mean dot product "
                           "of the query map's central window, turned clockwise by heading k (and drawn "
                           "query_extent_m / tile extent times larger about its centre where query_extent_m > 0), "
-                          "with the tile map, the window's centre on each cell corner of the tile map, the mean "
-                          "taken over the window's cells on the tile (overlap 'mean') or the whole window "
+                          "with the tile map (and its margin, where the tile is read with one), the window's "
+                          "centre on each cell corner of the tile, the mean taken over the window's cells on the "
+                          "map that hold imagery (overlap 'mean') or the whole window "
                           "('window'), or ('evidence') the sum over the window's cells on the tile less "
                           "evidence_offset for each of them, over the whole window; "
                           "geoloc.models.refiners.correlation.correlate, and Refinement "
@@ -148,13 +151,26 @@ def export_refiner(encoder: CrossViewEncoder, tmp: Path, opset: int | None) -> d
                                  if getattr(encoder.refiner, "evidence_offset", None) is not None else None),
              "query_extent_m": encoder.refine_config.query_extent_m,
              "scale": float(encoder.refiner.log_scale.detach().exp()) if hasattr(encoder.refiner, "log_scale") else None}
+    margin, wide = encoder.refine_config.margin, encoder.refine_reference_side()
     for name, file in REFINER_FILES.items():
         module = _Encode(encoder.refiner, name).eval()
-        example = torch.randn(2, 3, side, side, generator=torch.Generator().manual_seed(1))
+        channels, size = (4, wide) if name == "reference" and margin else (3, side)
+        example = torch.randn(2, channels, size, size, generator=torch.Generator().manual_seed(1))
+        if channels == 4:  # the coverage channel: 1 on imagery, 0 on a margin no tile covers
+            example[:, 3] = 1.0
+            example[1, 3, :, size - size // 8:] = 0.0
         export_branch(module, example, tmp / file, opset, output_name=MAP_NAME)
-        entry[name] = {"file": file, "input": {"name": INPUT_NAME, "shape": ["batch", 3, side, side]},
+        entry[name] = {"file": file, "input": {"name": INPUT_NAME, "shape": ["batch", channels, size, size]},
                        "preprocessing": "as the branch of the same view, at side x side",
                        "checked_against_torch": checked(module, tmp / file, example, output_name=MAP_NAME)}
+    if margin:
+        entry["margin"] = margin
+        entry["reference"]["preprocessing"] = (
+            f"the tile with {margin} of its side of ground beyond each edge, cut from the half-overlapping tiles "
+            f"beside it (geoloc.data.tile_context), at {wide} x {wide} pixels ({(wide - side) // 2} beyond "
+            f"each edge of the {side}-pixel tile): the 3 colour channels as the branch of the same view, then a "
+            "fourth that is 1 where a tile covers the pixel and 0 where none does; the feature map's cells with no "
+            "imagery come out as zero vectors, and the correlation scores only the tile's own cell corners")
     return entry
 
 

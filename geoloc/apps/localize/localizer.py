@@ -65,6 +65,7 @@ class Localizer:
         self.device = encoder.device
         self.heading_steps = check_headings(heading_steps or encoder.data.heading_steps, self.limits)
         self.view = info.get("query_view", "panorama")
+        self._tile_reader = None  # row -> the refiner's tile image (encoder.tile_reader), made at the first refine
         if self.view not in ("panorama", "sphere"):
             raise ConfigError(f"the gallery was built from {info.get('split')}, whose queries are {self.view} "
                               "images; localize takes street panoramas or limited-FoV street photos")
@@ -205,8 +206,12 @@ class Localizer:
         the refiner takes them (CrossViewEncoder.refine), so the memory does not grow with topk."""
         query = self.encoder.refine_query(image, answer.heading_deg, view=self.view)
         rows = [hit["row"] for hit in answer.topk]
-        out = self.encoder.refine(query, lambda i: self.places.tile_image(answer.topk[i]["path"]),
-                                  self.places.reference_extent_m[rows])
+        if self._tile_reader is None:  # where the refiner reads a margin, it finds the tiles beside each one once
+            places = self.places
+            self._tile_reader = self.encoder.tile_reader(lambda row: places.tile_image(places.references[row]),
+                                                         places.reference_positions, places.reference_extent_m,
+                                                         places.kind)
+        out = self.encoder.refine(query, lambda i: self._tile_reader(rows[i]), self.places.reference_extent_m[rows])
         if out is None:
             return
         # P(within 5 m | the tile holds the camera) where it holds: the refiner searches the heading, or it is given

@@ -22,6 +22,12 @@ refiners were trained so; their checkpoints keep it). `overlap="evidence"` sums 
 learnt charge per cell, over the whole window (a log-likelihood ratio of a match when each cell votes with noise):
 a position is scored by how much evidence it has. `padding="replicate"` has the encoders repeat the image's border
 instead of reading zeros beyond it. Neither is in the recipe (docs/localisation.md measures both).
+
+A tile read with a margin of ground around it (refiner.margin; geoloc/data/tile_context.py stitches it from the
+tiles beside it, with a fourth channel saying where imagery lies) gives an m x m reference map, m = n + 2 margin
+cells, zero vectors where no imagery lies. The query's window is still laid on the tile's own (n + 1) x (n + 1) cell
+corners, and its cells that fall on the margin count like those on the tile wherever they hold imagery: near the
+edge the camera's view is matched on the ground beyond it instead of on fewer cells.
 """
 
 from __future__ import annotations
@@ -99,9 +105,12 @@ def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_d
     B tiles, given as its map expanded to B (stride 0 along the batch, as an app's top-k refinement passes it), is
     rotated and transformed once instead of B times where the tiles share one scale."""
     b, c, n, _ = query_maps.shape
-    if reference_maps.shape != query_maps.shape or n % 2 or kernel % 2 or not 2 <= kernel <= n:
-        raise ValueError(f"correlate takes two B x C x n x n maps (n even) and an even kernel <= n; got "
-                         f"{tuple(query_maps.shape)}, {tuple(reference_maps.shape)}, kernel {kernel}")
+    m = reference_maps.shape[-1]
+    if (reference_maps.shape[:2] != query_maps.shape[:2] or reference_maps.shape[-2] != m or m < n or (m - n) % 2
+            or n % 2 or kernel % 2 or not 2 <= kernel <= n):
+        raise ValueError(f"correlate takes a B x C x n x n query map (n even), a B x C x m x m reference map with a "
+                         f"margin of (m - n) / 2 >= 0 cells and an even kernel <= n; got {tuple(query_maps.shape)}, "
+                         f"{tuple(reference_maps.shape)}, kernel {kernel}")
     if overlap not in OVERLAP:
         raise ValueError(f"correlate: overlap must be one of {OVERLAP}, got {overlap!r}")
     if query_scale is not None:
@@ -129,22 +138,41 @@ def turned_windows(query_maps: torch.Tensor, headings_deg: torch.Tensor, kernel:
     return torch.fft.rfft2(window.float().flip(-1, -2), s=(n + kernel, n + kernel))
 
 
+def context_cells(reference_maps: torch.Tensor, n: int, kernel: int) -> torch.Tensor:
+    """B x C x m x m reference maps of an n x n tile with a margin of (m - n) / 2 cells, zero where no imagery
+    lies -> B x 1 x (n+1) x (n+1): how many cells with imagery a kernel x kernel window centred on each of the
+    tile's cell corners covers (a box sum over an integral image: exact counts)."""
+    m = reference_maps.shape[-1]
+    valid = (reference_maps != 0).any(1).double()  # B x m x m
+    integral = F.pad(valid.cumsum(1).cumsum(2), (1, 0, 1, 0))  # B x (m+1) x (m+1)
+    corner = torch.arange(n + 1, device=reference_maps.device) + (m - n) // 2
+    low, high = (corner - kernel // 2).clamp(0, m), (corner + kernel // 2).clamp(0, m)
+    box = (integral[:, high][:, :, high] - integral[:, low][:, :, high] - integral[:, high][:, :, low]
+           + integral[:, low][:, :, low])
+    return box.float()[:, None]
+
+
 def correlate_turned(windows: torch.Tensor, reference_maps: torch.Tensor, kernel: int, overlap: str = "mean",
                      shared: bool = False, offset: torch.Tensor | None = None) -> torch.Tensor:
-    """correlate's scores from its query side already computed: windows, turned_windows of B queries, or of one
-    query for every reference map (shared); reference_maps: B x C x n x n -> B x K x (n+1) x (n+1)."""
-    n = reference_maps.shape[-1]
-    size = (n + kernel, n + kernel)
-    reference = torch.fft.rfft2(reference_maps.float(), s=size)  # B x C x N x N/2+1
-    product = (torch.einsum("bchw,kchw->bkhw", reference, windows[0]) if shared
-               else torch.einsum("bchw,bkchw->bkhw", reference, windows))
+    """correlate's scores from its query side already computed: windows, turned_windows of B queries (of n x n
+    maps), or of one query for every reference map (shared); reference_maps: B x C x m x m, the tile's n x n map
+    with a margin of (m - n) / 2 cells of ground around it (m = n: none), its cells zero where no imagery lies ->
+    B x K x (n+1) x (n+1), the tile's cell corners only."""
+    m = reference_maps.shape[-1]
+    n = 2 * (windows.shape[-1] - 1) - kernel  # turned_windows' spectra are N x (N/2 + 1), N = n + kernel
+    size = (m + kernel, m + kernel)
+    reference = torch.fft.rfft2(reference_maps.float(), s=size)  # B x C x M x M/2+1
+    spectra = windows if m == n else torch.fft.rfft2(torch.fft.irfft2(windows, s=(n + kernel,) * 2), s=size)
+    product = (torch.einsum("bchw,kchw->bkhw", reference, spectra[0]) if shared
+               else torch.einsum("bchw,bkchw->bkhw", reference, spectra))
     full = torch.fft.irfft2(product, s=size)
-    # output corner o: the window's centre on the reference map's cell corner o (full index o + kernel/2 - 1)
-    first = kernel // 2 - 1
+    # output corner o: the window's centre on the tile's cell corner o, the reference map's o + margin (full index
+    # o + margin + kernel/2 - 1)
+    first = kernel // 2 - 1 + (m - n) // 2
     summed = full[..., first:first + n + 1, first:first + n + 1]
     if overlap == "window":
         return summed / (kernel * kernel)
-    cells = window_cells(n, kernel, full.device)
+    cells = window_cells(n, kernel, full.device) if m == n else context_cells(reference_maps, n, kernel)
     if overlap == "mean":
         return summed / cells
     if offset is None:
@@ -179,8 +207,14 @@ class CorrelationRefiner(nn.Module):
         return F.normalize(self.query_encoder(images), dim=1)
 
     def encode_reference(self, images: torch.Tensor) -> torch.Tensor:
-        """B x 3 x S x S tiles -> B x C x S/2 x S/2, unit length per position."""
-        return F.normalize(self.reference_encoder(images), dim=1)
+        """B x 3 x S x S tiles -> B x C x S/2 x S/2, unit length per position; or B x 4 x S' x S' tiles with a
+        margin (geoloc/data/tile_context.py: RGB, then 1 where imagery lies) -> B x C x S'/2 x S'/2, zero at each
+        cell whose 2 x 2 pixels are not all imagery."""
+        if images.shape[1] == 3:
+            return F.normalize(self.reference_encoder(images), dim=1)
+        rgb, valid = images[:, :3], images[:, 3:]
+        cells = -F.max_pool2d(-valid, 2)  # 1 where every pixel of the cell is imagery
+        return F.normalize(self.reference_encoder(rgb * valid), dim=1) * (cells > 0.5).to(rgb.dtype)
 
     def match(self, query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_deg,
               query_scale: torch.Tensor | None = None) -> Refinement:

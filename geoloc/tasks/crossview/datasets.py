@@ -15,14 +15,16 @@ from geoloc.config import ConfigError
 from geoloc.data.decoded import DecodedImages
 from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import PER_QUERY, PER_REFERENCE, RetrievalSplit
+from geoloc.data.tile_context import TileContext
 from geoloc.data.validate import check_files
 from geoloc.engine.sampling import item_rng, split_key
 from geoloc.tasks.crossview.data_config import CrossViewDataConfig
 from geoloc.tasks.crossview.heading import query_candidates
 import geoloc.tasks.crossview.view_pairs  # noqa: F401  (the query_views kind that build() builds)
-from geoloc.tasks.crossview.refine import RefineConfig, eval_offset, refine_item
+from geoloc.tasks.crossview.refine import RefineConfig
+from geoloc.tasks.crossview.refine_items import eval_offset, refine_item, tile_input
 from geoloc.tasks.crossview.transforms import (align, align_query, align_reference, augment, decode_size,
-                                                image_tensor, jitter_draw, load_view, resize, to_tensor)
+                                                image_tensor, jitter_draw, load_view, to_tensor)
 from geoloc.tasks.crossview.views import crop_view, eval_heading, north_window
 
 NEIGHBOURS = 128  # GPS neighbours listed per training pair (Sample4Geo's neighbour_range)
@@ -140,6 +142,7 @@ class CrossViewPairs(Dataset):
         self.refine = refine  # a RefineConfig: items carry the refiner's inputs and truth (refine.py)
         self.labels = split.labels()
         self._neighbours = None
+        self._context = None  # the tiles' TileContext, where refine.margin reads them with a margin
         self.decoded = DecodedImages(cfg.cache_decoded and train)  # dataset.cache_decoded (geoloc/data/decoded.py)
 
     def __len__(self) -> int:
@@ -204,8 +207,10 @@ class CrossViewPairs(Dataset):
                             index=index, label=label)
 
     def _refine_item(self, index: int, label: int, street: np.ndarray, rng) -> dict:
-        """The pair as the refiner sees it (refine.refine_item), with the retrieval inputs of the same view."""
-        item = refine_item(self.split, index, street, self.cfg, self.refine, rng)
+        """The pair as the refiner sees it (refine_items.refine_item), with the retrieval inputs of the same view."""
+        if self._context is None and self.refine.margin:
+            self._context = TileContext.of(self.split, self.refine.margin)
+        item = refine_item(self.split, index, street, self.cfg, self.refine, rng, self._context)
         query = align_query(item.pop("street"), self.cfg, self.split.query_view)
         reference = align_reference(item.pop("aerial"), self.cfg)
         return self._images({"query": query, "reference": reference}, rng, index=index, label=label, **item)
@@ -221,10 +226,11 @@ class ViewImages(Dataset):
     heading in degrees, as CrossViewPairs gives them."""
 
     def __init__(self, paths: list[Path], view: str, cfg: CrossViewDataConfig, heading_search: bool = False,
-                 refine: RefineConfig | None = None):
+                 refine: RefineConfig | None = None, context: TileContext | None = None):
         self.paths, self.view, self.cfg = list(paths), view, cfg
         self.heading_search = heading_search
         self.refine = refine  # a RefineConfig: items carry "refine_image" (and a query's "refine_heading") too
+        self.context = context  # tiles: with refine.margin, their TileContext (TileContext.of the split)
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -250,10 +256,11 @@ class ViewImages(Dataset):
         return item
 
     def _refine_input(self, index: int) -> dict:
-        """The refiner's input: the tile at its side, or the query at its fixed test heading (refine.eval_offset)."""
+        """The refiner's input: the tile at its side, or the query at its fixed test heading (refine_items.eval_offset)."""
         side = self.refine.side(self.cfg.aerial_size)
         if self.view == "aerial":
-            return {"refine_image": to_tensor(resize(read_rgb(self.paths[index]), (side, side)))}
+            tile = read_rgb(self.paths[index]) if self.context is None else self.context.image(index, side)
+            return {"refine_image": tile_input(tile, side)}
         offset = eval_offset(index, self.refine.orientation_noise_deg)
         street = crop_view(load_view(self.paths[index], self.view), 360.0, offset)
         query = align_query(street, replace(self.cfg, aerial_size=side), self.view)
@@ -325,10 +332,17 @@ def eval_sets(cfg: CrossViewDataConfig, data: RetrievalSplit, refine: RefineConf
     if data.one_to_one:
         return EvalData(data, pairs=CrossViewPairs(data, cfg, train=False, heading_search=cfg.random_heading,
                                                    refine=refine))
-    reference_view = "image" if data.aerial_queries else "aerial"
     return EvalData(data, queries=ViewImages(data.queries, data.query_view, cfg, heading_search=cfg.random_heading,
                                              refine=refine),
-                    references=ViewImages(data.references, reference_view, cfg, refine=refine))
+                    references=reference_images(data, cfg, refine))
+
+
+def reference_images(split: RetrievalSplit, cfg: CrossViewDataConfig, refine: RefineConfig | None = None) -> ViewImages:
+    """The gallery side of `split` as ViewImages (with `refine`, the refiner's inputs too: each tile with its margin
+    where refine.margin asks for one)."""
+    reference_view = "image" if split.aerial_queries else "aerial"
+    context = None if refine is None or reference_view != "aerial" else TileContext.of(split, refine.margin)
+    return ViewImages(split.references, reference_view, cfg, refine=refine, context=context)
 
 
 def padded(split: RetrievalSplit, distractors: list[Path]) -> RetrievalSplit:

@@ -15,7 +15,7 @@ inputs are the evaluation's.
 
 from __future__ import annotations
 
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -24,19 +24,22 @@ from omegaconf import DictConfig, OmegaConf
 
 from geoloc import registry
 from geoloc.config import ConfigError
+from geoloc.data.tile_context import TileContext, at_side, margin_pixels, tile_size
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import autocast, resolve_device
 from geoloc.tasks.crossview.crossview_config import stored_precision
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
 from geoloc.tasks.crossview.refine import matcher, offset_m, read_answer
+from geoloc.tasks.crossview.refine_items import tile_input
 from geoloc.tasks.crossview.refine_confidence import refiner_condition
 from geoloc.tasks.crossview.input_spec import check_ground_view, normalisation, query_input, reference_input
-from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, resize, to_tensor
+from geoloc.tasks.crossview.transforms import align_query, align_reference, horizon_band, to_tensor
 from geoloc.tasks.crossview.views import candidate_headings, canvas_columns, check_fov, view_canvas
 
 
 REFINE_CHUNK = 8  # tiles per refiner pass: bounds a top-k refinement's memory whatever topk
+TILES_KEPT = 64  # refiner.margin: decoded gallery tiles a localizer keeps for stitching (64 of 640 px: 79 MB)
 
 
 class CrossViewEncoder:
@@ -182,15 +185,40 @@ class CrossViewEncoder:
         return to_tensor(align_query(north_up, replace(self.data, aerial_size=side), view))[None]
 
     def refine_tile(self, tile: np.ndarray) -> torch.Tensor:
-        """An aerial tile (H×W×3 uint8) -> the refiner's reference input on the CPU: 3×s×s."""
+        """An aerial tile (H×W×3 uint8) -> the refiner's reference input on the CPU: 3×s×s; a tile with its margin
+        (H'×W'×4, as tile_reader gives it where refiner.margin > 0) -> 4×s'×s'."""
         side = self.refine_config.side(self.data.aerial_size)
-        return to_tensor(resize(tile, (side, side)))
+        return tile_input(tile if tile.shape[-1] == 3 else at_side(tile, side, self.refine_config.margin), side)
+
+    def refine_reference_side(self) -> int:
+        """The side in pixels of the refiner's reference input: the tile's, plus its margin on either side where
+        refiner.margin reads one."""
+        side = self.refine_config.side(self.data.aerial_size)
+        return side + 2 * margin_pixels(side, self.refine_config.margin)
+
+    def tile_reader(self, read, positions, extent_m, kind: str):
+        """What refine's `tile` reads for gallery row i: read(i) (H×W×3 uint8, or None where it cannot be read)
+        where the refiner reads the tile alone; where it reads a margin (refiner.margin), the tile stitched with the
+        ground beyond its edges from the gallery's tiles beside it (geoloc/data/tile_context.py), found by their
+        positions ((N, 2) as `kind` "latlon" or "xy" says) and extent_m ((N, 2) metres)."""
+        if self.refine_config is None or not self.refine_config.margin:
+            return read
+        # a tile and its neighbours are read together, and the top-k tiles are often neighbours themselves
+        cached = lru_cache(maxsize=TILES_KEPT)(read)
+        return TileContext.of_gallery(cached, positions, extent_m, kind, self.refine_config.margin).image
+
+    def _tile_size(self, image: np.ndarray) -> tuple[int, int]:
+        """The (H, W) pixels of the tile an image refine_tile takes shows (a stitched one's without its margin)."""
+        if image.shape[-1] == 3:
+            return image.shape[:2]
+        return tuple(tile_size(n, self.refine_config.margin) for n in image.shape[:2])
 
     @torch.no_grad()
     def refine(self, query: torch.Tensor, tile, extent_m: np.ndarray, radius_m: float = 5.0,
                chunk: int = REFINE_CHUNK) -> dict | None:
         """The refiner's answer for one query (refine_query) in each of T tiles covering extent_m (T×2 metres,
-        height and width). tile(i): tile i's image (H×W×3 uint8), or None where it cannot be read; the tiles are
+        height and width). tile(i): tile i's image (H×W×3 uint8; with refiner.margin its stitched
+        image, tile_reader), or None where it cannot be read; the tiles are
         decoded, encoded and matched `chunk` at a time, as they are consumed, so the memory does not grow with T,
         and the query's map is encoded once and turned once per query scale (the tiles are taken scale by scale;
         the answer is the one a single batch of all T gives). -> {"offset_m": T×2 (east, north) metres from each
@@ -227,7 +255,7 @@ class CrossViewEncoder:
                                                  else np.zeros(len(part))),
                           "mass": mass.cpu().numpy(),
                           "maps": found.position_log_prob.exp().cpu().numpy(),
-                          "tile_size_px": np.array([image.shape[:2] for image in tiles])}
+                          "tile_size_px": np.array([self._tile_size(image) for image in tiles])}
                 for key, value in answer.items():
                     out.setdefault(key, np.zeros((len(extent), *value.shape[1:]), value.dtype))[part] = value
         return out

@@ -1,4 +1,5 @@
-"""Fine-grained localisation in the cross-view task: the refiner's config, its training items and its metrics.
+"""Fine-grained localisation in the cross-view task: the refiner's config and its metrics (its training and test items:
+refine_items.py).
 
 A run refines when its config has a `refiner` section (geoloc/conf/refiner/<name>.yaml): the refiner's own keys go to its
 registered factory (geoloc/models/refiners/), and the keys of RefineConfig say how it is trained and tested. With no
@@ -17,7 +18,7 @@ before it is matched, so one refiner meets tiles of any ground extent at the sca
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -27,13 +28,12 @@ import geoloc.models.refiners  # noqa: F401  (declares the refiner kind, registe
 from geoloc import registry
 from geoloc.config import checked
 from geoloc.data.geo import distance_m, offset_to_latlon
-from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import (E2E_KEYS, FINE_HEADING_KEYS, FINE_KEYS, WHOLE_TILE_KEYS, e2e_summary,
                                     fine_summary, heading_summary, near_edge, whole_tile_summary)
 from geoloc.eval.scoring import top_k
-from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, to_tensor
-from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, candidate_headings, circular_error_deg, crop_view
+from geoloc.tasks.crossview.refine_items import tile_pairs, truth_fraction
+from geoloc.tasks.crossview.views import candidate_headings, circular_error_deg
 
 STAGES = ("refine", "joint")
 METRE_LABELS = "metre_labels"  # the metrics' key that names the label set behind their metres (tile_labels)
@@ -63,6 +63,10 @@ class RefineConfig:
     # the weight of a training truth near the tile's edge (fine_error.near_edge: within 0.1 of an edge) in the
     # refiner's loss, beside 1 for the others; 1: every truth alike
     edge_weight: float = 1.0
+    # the tile is read with this share of its side of ground beyond each edge, cut from the half-overlapping tiles
+    # beside it (geoloc/data/tile_context.py; at most 0.5), and the query's view is matched over it: a camera near the
+    # edge keeps imagery under the part of its view that leaves the tile; 0: the tile alone
+    margin: float = 0.0
 
     def __post_init__(self):
         if self.stage not in STAGES:
@@ -77,6 +81,9 @@ class RefineConfig:
                              f"{self.query_extent_m}")
         if not (np.isfinite(self.edge_weight) and self.edge_weight > 0):
             raise ValueError(f"refiner.edge_weight must be a weight > 0 (1: every truth alike), got {self.edge_weight}")
+        if not 0.0 <= self.margin <= 0.5:
+            raise ValueError(f"refiner.margin must be a share of the tile's side in [0, 0.5] (0: the tile alone; the "
+                             f"tiles beside it reach half a tile beyond each edge), got {self.margin}")
         if not 0.0 <= self.peak_smoothing <= 0.5:
             raise ValueError(f"refiner.peak_smoothing must be a share of the tile's side in [0, 0.5] (0: the raw "
                              f"peak), got {self.peak_smoothing}")
@@ -160,79 +167,6 @@ def matcher(refiner, query_map, candidates, scale=None):
         scales = {} if scale is None else {"query_scale": torch.as_tensor(scale).reshape(1).expand(b)}
         return refiner.match(query_map.expand(b, *query_map.shape[1:]), reference_maps, candidates, **scales)
     return matched
-
-
-# ---- items --------------------------------------------------------------------------------------------------
-def eval_offset(index: int, noise_deg: float) -> float:
-    """The fixed heading of test query `index` under orientation noise +-X: U(-X, X) from numpy's
-    default_rng((EVAL_HEADING_SEED, index)), the draw views.eval_heading makes, so every run meets the same ones."""
-    if noise_deg == 0:
-        return 0.0
-    u = np.random.default_rng((EVAL_HEADING_SEED, int(index))).uniform(0.0, 1.0)
-    return float((2.0 * u - 1.0) * noise_deg)
-
-
-def tile_pairs(split: RetrievalSplit, whole_tile: bool, queries=None) -> tuple[np.ndarray, np.ndarray]:
-    """((P,) query rows, (P,) tile rows) of the pairs of `queries` (default all) with a tile that holds them: the
-    positive, and with `whole_tile` each semi-positive whose truth lies inside it (RetrievalSplit.semi_inside)."""
-    rows = np.arange(split.num_queries) if queries is None else np.asarray(queries, np.int64)
-    inside = split.semi_inside() if whole_tile else None
-    if inside is None:
-        return rows, split.positives[rows]
-    keep = np.column_stack([np.ones(len(rows), bool), inside[rows]])
-    tiles = np.column_stack([split.positives[rows], split.semi_positives[rows]])
-    return np.broadcast_to(rows[:, None], tiles.shape)[keep], tiles[keep]
-
-
-def truth_fraction(split: RetrievalSplit, index: int, tile: int) -> np.ndarray:
-    """(row, col) tile fraction of query `index` in reference `tile` (its positive or a semi-positive)."""
-    if split.query_tile_px is None:
-        return np.array([0.5, 0.5])
-    size = split.reference_size_px[tile].astype(np.float64)
-    if tile == split.positives[index]:
-        return split.query_tile_px[index] / size
-    j = int(np.flatnonzero(split.semi_positives[index] == tile)[0])
-    return split.query_semi_tile_px[index, j] / size
-
-
-def turned_fraction(frac: np.ndarray, quarter_turns: int, flip: bool) -> np.ndarray:
-    """A tile fraction after transforms.flip_rotate's east-west mirror, then quarter turns clockwise."""
-    row, col = float(frac[0]), float(frac[1])
-    if flip:
-        col = 1.0 - col
-    for _ in range(quarter_turns):
-        row, col = col, 1.0 - row
-    return np.array([row, col])
-
-
-def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refine: RefineConfig,
-                rng: np.random.Generator | None) -> dict:
-    """A training (rng given) or test item for the refiner: the query seen at a heading off north (drawn, or fixed
-    per query for tests), the tile (the positive, or with semi_positives any tile holding the query), the truth.
-
-    -> {"street": the view (H x W x 3, for the retrieval inputs), "aerial": the tile as turned, "refine_query",
-    "refine_reference": 3 x s x s, "tile_px": (2,) tile fraction, "refine_heading": degrees in [0, 360),
-    "refine_extent_m": (2,) metres the tile covers (NaN where the split has no scale)}."""
-    _, tiles = tile_pairs(split, refine.semi_positives and rng is not None, [index])
-    tile = int(tiles[int(rng.integers(len(tiles)))]) if len(tiles) > 1 else int(tiles[0])
-    frac = truth_fraction(split, index, tile)
-    aerial = read_rgb(split.references[tile])
-    if rng is not None and cfg.joint_flip_rotate:
-        turns, flip = int(rng.integers(4)), bool(rng.integers(2))
-        street, aerial = flip_rotate(street, aerial, turns, flip)
-        frac = turned_fraction(frac, turns, flip)
-    extent = (np.full(2, np.nan) if split.reference_extent_m is None
-              else split.reference_extent_m[tile].astype(np.float64))
-    noise = refine.orientation_noise_deg
-    offset = (float(rng.uniform(-noise, noise)) if noise > 0 else 0.0) if rng is not None else eval_offset(index, noise)
-    view = crop_view(street, 360.0, offset) if offset else street
-    side = refine.side(cfg.aerial_size)
-    small = replace(cfg, aerial_size=side)
-    return {"street": view, "aerial": aerial,
-            "refine_query": to_tensor(align_query(view, small, split.query_view)),
-            "refine_reference": to_tensor(resize(aerial, (side, side))),
-            "tile_px": torch.tensor(frac, dtype=torch.float32), "refine_heading": offset % 360.0,
-            "refine_extent_m": torch.tensor(extent, dtype=torch.float32)}
 
 
 # ---- metrics ------------------------------------------------------------------------------------------------

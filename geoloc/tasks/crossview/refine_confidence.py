@@ -59,6 +59,8 @@ def refiner_condition(refiner, refine: RefineConfig) -> dict:
                  "query_extent_m": float(refine.query_extent_m), "refiner_fingerprint": weights_fingerprint(refiner)}
     if refine.peak_smoothing:  # recorded where set, so the calibrations of galleries saved before it stay valid
         condition["peak_smoothing"] = float(refine.peak_smoothing)
+    if refine.margin:  # the same: a refiner reading no margin keeps its condition
+        condition["margin"] = float(refine.margin)
     return condition
 
 

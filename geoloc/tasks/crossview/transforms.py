@@ -122,14 +122,21 @@ def flip_rotate(street: np.ndarray, aerial: np.ndarray, quarter_turns: int, flip
     maps bearing b to -b, i.e. column j to column -j (mod W); turning the aerial clockwise by 90° makes column j
     show what column j - W/4 showed.
     """
-    turns, shift = quarter_turns % 4, (quarter_turns % 4) * (street.shape[1] // 4)
+    shift = (quarter_turns % 4) * (street.shape[1] // 4)
     if flip:  # column j <- column -j (mod W): the mirrored columns (cv2.flip) rolled by one
-        aerial, street, shift = cv2.flip(aerial, 1), cv2.flip(street, 1), shift + 1
-    if turns:  # k turns at once: one rotation, and one roll of the panorama by k·(W // 4) (with the flip's)
-        aerial = cv2.rotate(np.ascontiguousarray(aerial), _CLOCKWISE_TURNS[turns])
-    if shift:
+        street, shift = cv2.flip(street, 1), shift + 1
+    if shift:  # k turns at once: one roll of the panorama by k·(W // 4) (with the flip's)
         street = np.roll(street, shift, axis=1)
-    return np.ascontiguousarray(street), np.ascontiguousarray(aerial)
+    return np.ascontiguousarray(street), turned_tile(aerial, quarter_turns, flip)
+
+
+def turned_tile(aerial: np.ndarray, quarter_turns: int, flip: bool) -> np.ndarray:
+    """flip_rotate's aerial side alone (H×W×C, any C): mirrored east-west, then turned clockwise by quarter turns."""
+    if flip:
+        aerial = cv2.flip(aerial, 1)
+    if quarter_turns % 4:
+        aerial = cv2.rotate(np.ascontiguousarray(aerial), _CLOCKWISE_TURNS[quarter_turns % 4])
+    return np.ascontiguousarray(aerial)
 
 
 _CLOCKWISE_TURNS = {1: cv2.ROTATE_90_CLOCKWISE, 2: cv2.ROTATE_180, 3: cv2.ROTATE_90_COUNTERCLOCKWISE}

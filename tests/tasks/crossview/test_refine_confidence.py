@@ -310,3 +310,13 @@ def test_a_gallery_merged_from_shards_keeps_the_refiners_confidence_and_says_why
                               refiner_condition=refiner_condition(GaussianGuess(), RefineConfig()))
     health = Localizer(encoder, None, None, {"query_view": "panorama"}, calibration=record).calibration_info()
     assert health["calibrated"] is False and health["why"] == ACROSS_JOBS and health[WITHIN_5M]["calibrated"]
+
+
+def test_a_margin_is_part_of_the_calibrators_condition_only_where_set():
+    """A refiner that reads its tiles with a margin answers differently from the same weights without one; a
+    refiner without one keeps the condition its galleries were calibrated under."""
+    plain = refiner_condition(GaussianGuess(), RefineConfig())
+    wide = refiner_condition(GaussianGuess(), RefineConfig(margin=0.25))
+    assert "margin" not in plain and wide == {**plain, "margin": 0.25}
+    with pytest.raises(ValueError, match="refiner.margin"):
+        RefineConfig(margin=0.6)

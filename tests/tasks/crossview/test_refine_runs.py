@@ -193,3 +193,39 @@ def test_one_to_one_data_has_only_the_heading_to_find(tiny_cvusa, tmp_path):
                                     f"run_dir={tmp_path / 'run'}"]))
     assert {"fine_heading_mean_deg", "fine_heading_median_deg", "R@1"} <= set(best)
     assert not any(key.startswith("e2e_") for key in best)  # one-to-one: no retrieved tile to refine in
+
+
+@pytest.mark.slow
+def test_a_refiner_with_a_margin_reads_the_tiles_beside_each_tile_end_to_end(vigor_root, tmp_path, monkeypatch):
+    """refiner.margin=0.25: training, validation, the saved gallery and the localizer all give the refiner each tile
+    with a quarter tile of ground around it, stitched from the tiles beside it (4 channels: RGB and coverage), and
+    the answer stays in the tile's own pixels."""
+    from geoloc.apps.localize import Localizer, read_street
+    from geoloc.models.refiners.correlation import CorrelationRefiner
+
+    seen = []
+    encode = CorrelationRefiner.encode_reference
+    monkeypatch.setattr(CorrelationRefiner, "encode_reference",
+                        lambda self, images: seen.append(tuple(images.shape[1:])) or encode(self, images))
+    run_dir = tmp_path / "run"
+    best = run.train(compose_train([*SMALL, *REFINE, f"dataset.root={vigor_root}", "refiner.stage=joint",
+                                    "refiner.semi_positives=true", "refiner.margin=0.25", "trainer.max_epochs=1",
+                                    f"run_dir={run_dir}"]))
+    assert {*FINE, "whole_tile_edge_median_m"} <= set(best)
+    assert seen and set(seen) == {(4, 48, 48)}  # refiner.size 32 and 8 pixels beyond each edge, in every batch
+    seen.clear()
+    gallery = tmp_path / "gallery"
+    run.evaluate(compose_evaluate([f"ckpt={run_dir / 'last.pt'}", "dataset=vigor", f"dataset.root={vigor_root}",
+                                   "dataset.cities=[Chicago,NewYork]", f"gallery.save={gallery}", "progress=false",
+                                   f"run_dir={tmp_path / 'saving'}"]))
+    assert set(seen) == {(4, 48, 48)}
+    seen.clear()
+    localizer = Localizer.load(run_dir / "last.pt", gallery, device="cpu")
+    query = next(iter(localizer.places.queries.values()))
+    out = localizer.localize(read_street(vigor_root / query["path"]), topk=3, heading=0).to_json()
+    assert set(seen) == {(4, 48, 48)}
+    refined = out["refined_position"]
+    tile = localizer.places.tile_image(out["topk"][0]["path"])
+    assert refined["tile_size_px"] == list(tile.shape[:2])  # the tile's own pixels, not the stitched canvas's
+    (row, col), (height, width) = refined["tile_px"], refined["tile_size_px"]
+    assert 0 <= row <= height and 0 <= col <= width

@@ -11,8 +11,8 @@ from geoloc.data.geo import haversine_m
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import e2e_summary, fine_summary, heading_summary
 from geoloc.eval.scoring import top_k
-from geoloc.tasks.crossview.refine import (RefineConfig, e2e_errors_m, eval_offset, fraction_error_m, offset_m,
-                                           refined_positions, truth_fraction, turned_fraction)
+from geoloc.tasks.crossview.refine import RefineConfig, e2e_errors_m, fraction_error_m, offset_m, refined_positions
+from geoloc.tasks.crossview.refine_items import eval_offset, truth_fraction, turned_fraction
 from geoloc.tasks.crossview.transforms import flip_rotate
 
 

@@ -9,7 +9,8 @@ import torch
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.eval.fine_error import whole_tile_summary
 from geoloc.tasks.crossview.legacy import upgraded_refiner
-from geoloc.tasks.crossview.refine import RefineConfig, tile_pairs, truth_fraction
+from geoloc.tasks.crossview.refine import RefineConfig
+from geoloc.tasks.crossview.refine_items import tile_pairs, truth_fraction
 from omegaconf import OmegaConf
 
 

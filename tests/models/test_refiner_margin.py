@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from geoloc.models.refiners.correlation import CorrelationRefiner, correlate
-from tests.models.test_refiner_geometry import brute_correlate, query_at, smooth_maps
+from models.test_refiner_geometry import brute_correlate, query_at, smooth_maps
 
 
 @pytest.mark.parametrize("overlap", ["mean", "window", "evidence"])

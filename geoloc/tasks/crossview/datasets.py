@@ -142,7 +142,9 @@ class CrossViewPairs(Dataset):
         self.refine = refine  # a RefineConfig: items carry the refiner's inputs and truth (refine.py)
         self.labels = split.labels()
         self._neighbours = None
-        self._context = None  # the tiles' TileContext, where refine.margin reads them with a margin
+        # the tiles' TileContext where refine.margin reads them with a margin: their neighbours found once, here,
+        # not in each loader worker
+        self.context = None if refine is None else TileContext.of(split, refine.margin)
         self.decoded = DecodedImages(cfg.cache_decoded and train)  # dataset.cache_decoded (geoloc/data/decoded.py)
 
     def __len__(self) -> int:
@@ -208,9 +210,7 @@ class CrossViewPairs(Dataset):
 
     def _refine_item(self, index: int, label: int, street: np.ndarray, rng) -> dict:
         """The pair as the refiner sees it (refine_items.refine_item), with the retrieval inputs of the same view."""
-        if self._context is None and self.refine.margin:
-            self._context = TileContext.of(self.split, self.refine.margin)
-        item = refine_item(self.split, index, street, self.cfg, self.refine, rng, self._context)
+        item = refine_item(self.split, index, street, self.cfg, self.refine, rng, self.context)
         query = align_query(item.pop("street"), self.cfg, self.split.query_view)
         reference = align_reference(item.pop("aerial"), self.cfg)
         return self._images({"query": query, "reference": reference}, rng, index=index, label=label, **item)

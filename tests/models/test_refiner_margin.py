@@ -68,3 +68,16 @@ def test_a_reference_smaller_than_the_query_or_an_odd_margin_is_refused():
     for side in (6, 9):
         with pytest.raises(ValueError, match="margin"):
             correlate(query, smooth_maps(3, side, 2), torch.zeros(1), kernel=4)
+
+
+def test_the_matcher_lays_one_query_on_tiles_with_and_without_a_margin_as_match_does():
+    """The app's path (the query turned once, its windows laid once for each size of reference map) gives match's
+    answer for the query map expanded to the tiles, on 12 x 12 maps with a margin and on 8 x 8 ones without."""
+    refiner = CorrelationRefiner(channels=3, width=4, kernel_frac=1.0, heading_bins=4).eval()
+    query = F.normalize(smooth_maps(3, 8, 7), dim=1)
+    matched = refiner.matcher(query, [0.0, 90.0])
+    for side, seed in ((12, 8), (8, 9), (12, 10)):
+        tiles = F.normalize(smooth_maps(3, side, seed), dim=1)
+        tiles = torch.cat([tiles, tiles.flip(-1)])
+        expected = refiner.match(query.expand(2, -1, -1, -1), tiles, [0.0, 90.0]).position_log_prob
+        assert torch.allclose(matched(tiles).position_log_prob, expected, atol=1e-5)

@@ -120,22 +120,23 @@ def correlate(query_maps: torch.Tensor, reference_maps: torch.Tensor, headings_d
     one_scale = query_scale is None or bool((query_scale == query_scale[0]).all())
     shared = b > 1 and query_maps.stride(0) == 0 and one_scale  # the same query map for every tile, at one scale
     windows = turned_windows(query_maps[:1] if shared else query_maps, headings_deg, kernel,
-                             None if query_scale is None else query_scale[:1] if shared else query_scale)
-    return correlate_turned(windows, reference_maps, kernel, overlap, shared, offset)
+                             None if query_scale is None else query_scale[:1] if shared else query_scale, m)
+    return correlate_turned(windows, reference_maps, kernel, overlap, shared, offset, n)
 
 
 def turned_windows(query_maps: torch.Tensor, headings_deg: torch.Tensor, kernel: int,
-                   query_scale: torch.Tensor | None = None) -> torch.Tensor:
-    """B x C x n x n query maps -> B x K x C x N x (N/2 + 1), N = n + kernel: the spectrum of each map's central
-    kernel x kernel window, turned by each heading (and drawn query_scale[b] times larger) and flipped, which
-    correlate_turned lays on reference maps."""
+                   query_scale: torch.Tensor | None = None, side: int | None = None) -> torch.Tensor:
+    """B x C x n x n query maps -> B x K x C x N x (N/2 + 1), N = side + kernel (side: the m x m reference maps'
+    side, default n): the spectrum of each map's central kernel x kernel window, turned by each heading (and drawn
+    query_scale[b] times larger) and flipped, which correlate_turned lays on m x m reference maps."""
     n = query_maps.shape[-1]
     rotated = rotate_maps(query_maps, headings_deg, query_scale)
     start = (n - kernel) // 2
     window = rotated[..., start:start + kernel, start:start + kernel]  # B x K x C x kernel x kernel
     # a correlation is a convolution with the flipped window: by FFT, several times faster than a grouped conv2d
-    # of large kernels on a CPU; padded to n + kernel so nothing wraps around
-    return torch.fft.rfft2(window.float().flip(-1, -2), s=(n + kernel, n + kernel))
+    # of large kernels on a CPU; padded to m + kernel so nothing wraps around
+    size = (n if side is None else side) + kernel
+    return torch.fft.rfft2(window.float().flip(-1, -2), s=(size, size))
 
 
 def context_cells(reference_maps: torch.Tensor, n: int, kernel: int) -> torch.Tensor:
@@ -143,7 +144,7 @@ def context_cells(reference_maps: torch.Tensor, n: int, kernel: int) -> torch.Te
     lies -> B x 1 x (n+1) x (n+1): how many cells with imagery a kernel x kernel window centred on each of the
     tile's cell corners covers (a box sum over an integral image: exact counts)."""
     m = reference_maps.shape[-1]
-    valid = (reference_maps != 0).any(1).double()  # B x m x m
+    valid = (reference_maps.abs().amax(1) > 0).double()  # B x m x m: 1 where a cell holds imagery (5x faster than any)
     integral = F.pad(valid.cumsum(1).cumsum(2), (1, 0, 1, 0))  # B x (m+1) x (m+1)
     corner = torch.arange(n + 1, device=reference_maps.device) + (m - n) // 2
     low, high = (corner - kernel // 2).clamp(0, m), (corner + kernel // 2).clamp(0, m)
@@ -153,18 +154,21 @@ def context_cells(reference_maps: torch.Tensor, n: int, kernel: int) -> torch.Te
 
 
 def correlate_turned(windows: torch.Tensor, reference_maps: torch.Tensor, kernel: int, overlap: str = "mean",
-                     shared: bool = False, offset: torch.Tensor | None = None) -> torch.Tensor:
+                     shared: bool = False, offset: torch.Tensor | None = None, n: int | None = None) -> torch.Tensor:
     """correlate's scores from its query side already computed: windows, turned_windows of B queries (of n x n
-    maps), or of one query for every reference map (shared); reference_maps: B x C x m x m, the tile's n x n map
-    with a margin of (m - n) / 2 cells of ground around it (m = n: none), its cells zero where no imagery lies ->
-    B x K x (n+1) x (n+1), the tile's cell corners only."""
+    maps) laid for m x m reference maps, or of one query for every reference map (shared); reference_maps:
+    B x C x m x m, the tile's n x n map with a margin of (m - n) / 2 cells of ground around it (n=None: m, no
+    margin), its cells zero where no imagery lies -> B x K x (n+1) x (n+1), the tile's cell corners only."""
     m = reference_maps.shape[-1]
-    n = 2 * (windows.shape[-1] - 1) - kernel  # turned_windows' spectra are N x (N/2 + 1), N = n + kernel
+    n = m if n is None else n
     size = (m + kernel, m + kernel)
+    if windows.shape[-2] != size[0]:
+        raise ValueError(f"correlate_turned: the windows were laid for {windows.shape[-2] - kernel} x "
+                         f"{windows.shape[-2] - kernel} reference maps, not these {m} x {m} ones "
+                         f"(turned_windows' side)")
     reference = torch.fft.rfft2(reference_maps.float(), s=size)  # B x C x M x M/2+1
-    spectra = windows if m == n else torch.fft.rfft2(torch.fft.irfft2(windows, s=(n + kernel,) * 2), s=size)
-    product = (torch.einsum("bchw,kchw->bkhw", reference, spectra[0]) if shared
-               else torch.einsum("bchw,bkchw->bkhw", reference, spectra))
+    product = (torch.einsum("bchw,kchw->bkhw", reference, windows[0]) if shared
+               else torch.einsum("bchw,bkchw->bkhw", reference, windows))
     full = torch.fft.irfft2(product, s=size)
     # output corner o: the window's centre on the tile's cell corner o, the reference map's o + margin (full index
     # o + margin + kernel/2 - 1)
@@ -224,15 +228,23 @@ class CorrelationRefiner(nn.Module):
                                           self.evidence_offset), headings)
 
     def matcher(self, query_map: torch.Tensor, headings_deg, query_scale: torch.Tensor | None = None):
-        """match of one query against tiles that come in parts, its map turned and transformed once: query_map
-        1 x C x n x n, query_scale one factor for every tile (None: no scale input) -> a function of B x C x n x n
-        reference maps -> their Refinement, equal to match's of the query map expanded to them."""
+        """match of one query against tiles that come in parts, its map turned and transformed once for each
+        size of reference map: query_map 1 x C x n x n, query_scale one factor for every tile (None: no scale
+        input) -> a function of B x C x m x m reference maps (m = n, or with a margin) -> their Refinement, equal to
+        match's of the query map expanded to them."""
         headings = torch.as_tensor(headings_deg, dtype=torch.float32, device=query_map.device).reshape(-1)
-        kernel = self.kernel(query_map.shape[-1])
+        n = query_map.shape[-1]
+        kernel = self.kernel(n)
         scale = None if query_scale is None else torch.as_tensor(query_scale, dtype=torch.float32).reshape(1)
-        windows = turned_windows(query_map, headings, kernel, scale)
-        return lambda reference_maps: self._refinement(
-            correlate_turned(windows, reference_maps, kernel, self.overlap, True, self.evidence_offset), headings)
+        laid = {}  # reference side -> the windows' spectra at that size
+
+        def matched(reference_maps: torch.Tensor) -> Refinement:
+            m = reference_maps.shape[-1]
+            if m not in laid:
+                laid[m] = turned_windows(query_map, headings, kernel, scale, m)
+            return self._refinement(correlate_turned(laid[m], reference_maps, kernel, self.overlap, True,
+                                                     self.evidence_offset, n), headings)
+        return matched
 
     def kernel(self, n: int) -> int:
         """The side of the query's window matched on n x n maps: even, at least 2."""

@@ -23,7 +23,7 @@ from tqdm import tqdm
 import geoloc
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.engine.device import AUTO, amp_dtype, autocast, check_device_name, on_for_cuda
+from geoloc.engine.device import AUTO, amp_dtype, autocast, check_device_name, on_for_cuda, warn_emulated_bf16
 from geoloc.engine.env import record_environment
 from geoloc.engine.logging import RunLogger
 from geoloc.engine.sampling import EpochSampler
@@ -139,6 +139,8 @@ class Trainer:
         self.config_yaml = config_yaml
         self.device = dist.init_from_env(cfg.device)
         self.amp_dtype = amp_dtype(cfg.precision, self.device, cfg.cpu_precision)
+        warn_emulated_bf16(self.device, cfg.cpu_precision, "train", "Add trainer.cpu_precision=32 to the command "
+                           "line to train in float32 (the recipe's figures were measured in bfloat16).")
         # trainer.channels_last / trainer.compile resolved for this device ("auto": on for CUDA only)
         self.channels_last = on_for_cuda(cfg.channels_last, self.device)
         self.compile = on_for_cuda(cfg.compile, self.device)

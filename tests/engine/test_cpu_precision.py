@@ -7,6 +7,7 @@ import pytest
 import torch
 from geoloc.config import ConfigError, checked
 from geoloc.engine import Trainer, TrainerConfig
+from geoloc.engine import device as device_rules
 from geoloc.engine.device import amp_dtype
 from geoloc.launch import run
 from geoloc.tasks.crossview.crossview_config import parse_evaluation
@@ -58,3 +59,23 @@ def test_evaluation_and_the_apps_compute_as_the_run_trained(tmp_path):
     served = encoder.encode_street(street)
     assert served.dtype == torch.float32 and torch.equal(served, as_trained)
     assert not torch.equal(served, in_float32)  # the comparison can tell the two apart
+
+
+@pytest.mark.parametrize("native", [False, True, None])
+def test_a_bf16_run_on_a_cpu_that_emulates_bf16_is_warned_with_the_way_out(tmp_path, monkeypatch, caplog, native):
+    """Only where torch says the CPU has no native bfloat16 path (not where it has one, nor where it cannot say), and
+    only for bf16 on the CPU; the trainer's warning names the key that turns it off."""
+    monkeypatch.setattr(device_rules, "native_cpu_bf16", lambda: native)
+    with caplog.at_level("WARNING", logger="geoloc.engine.device"):
+        Trainer(config(cpu_precision="32"), tmp_path / "f32")
+        assert not caplog.records
+        Trainer(config(cpu_precision="bf16"), tmp_path / "bf16")
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == (native is False)
+    if warned:
+        assert warned[0].startswith("train: the CPU autocast is bfloat16") and "trainer.cpu_precision=32" in warned[0]
+    assert not device_rules.warn_emulated_bf16(CUDA, "bf16", "x", "")  # the GPU's autocast is not this key's
+
+
+def test_torch_is_asked_whether_this_cpu_has_native_bf16():
+    assert device_rules.native_cpu_bf16() in (True, False, None)

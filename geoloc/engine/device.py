@@ -68,15 +68,18 @@ def native_cpu_bf16() -> bool | None:
         return None
 
 
-def warn_emulated_bf16(device: torch.device, cpu_precision: str, where: str, fix: str) -> bool:
-    """Log a warning when a bfloat16 autocast is asked for on a CPU that would emulate it, with `fix`, what to do
-    about it: the refine_vigor recipe's batch took 45 s under bf16 on an AVX2 CPU against 1.5 s in float32, where a
-    CPU with AVX-512 bf16 trains it 1.6x faster than float32 (docs/architecture.md). -> whether it warned."""
+def warn_emulated_bf16(device: torch.device, cpu_precision: str, where: str) -> bool:
+    """Log a warning when a bfloat16 autocast is asked for on a CPU that would emulate it, and say what to do: the
+    refine_vigor recipe's batch took 45 s under bf16 on an AVX2 CPU against 1.5 s in float32, where a CPU with
+    AVX-512 bf16 trains it 1.6x faster than float32 (docs/architecture.md). where: the run or checkpoint it is
+    about. -> whether it warned."""
     if device.type != "cpu" or cpu_precision != "bf16" or native_cpu_bf16() is not False:
         return False
-    log.warning("%s: the CPU autocast is bfloat16 (cpu_precision=bf16), but this CPU has no native bfloat16 path "
-                "(no AVX-512 or AMX: torch emulates it), so it computes many times slower than float32 (about 30x "
-                "measured on an AVX2 CPU). %s", where, fix)
+    log.warning("%s: the CPU autocast is bfloat16 (trainer.cpu_precision=bf16), but this CPU has no native bfloat16 "
+                "path (no AVX-512 or AMX: torch emulates it), so it computes many times slower than float32 (about "
+                "30x measured on an AVX2 CPU). To train in float32, add trainer.cpu_precision=32 to train.py's "
+                "command line; a checkpoint trained in bfloat16 is evaluated and served in bfloat16, as it trained.",
+                where)
     return True
 
 

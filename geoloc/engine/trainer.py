@@ -139,8 +139,7 @@ class Trainer:
         self.config_yaml = config_yaml
         self.device = dist.init_from_env(cfg.device)
         self.amp_dtype = amp_dtype(cfg.precision, self.device, cfg.cpu_precision)
-        warn_emulated_bf16(self.device, cfg.cpu_precision, "train", "Add trainer.cpu_precision=32 to the command "
-                           "line to train in float32 (the recipe's figures were measured in bfloat16).")
+        warn_emulated_bf16(self.device, cfg.cpu_precision, str(self.run_dir))
         # trainer.channels_last / trainer.compile resolved for this device ("auto": on for CUDA only)
         self.channels_last = on_for_cuda(cfg.channels_last, self.device)
         self.compile = on_for_cuda(cfg.compile, self.device)

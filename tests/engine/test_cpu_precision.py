@@ -64,7 +64,7 @@ def test_evaluation_and_the_apps_compute_as_the_run_trained(tmp_path):
 @pytest.mark.parametrize("native", [False, True, None])
 def test_a_bf16_run_on_a_cpu_that_emulates_bf16_is_warned_with_the_way_out(tmp_path, monkeypatch, caplog, native):
     """Only where torch says the CPU has no native bfloat16 path (not where it has one, nor where it cannot say), and
-    only for bf16 on the CPU; the trainer's warning names the key that turns it off."""
+    only for bf16 on the CPU; the warning names the run and the key that turns it off."""
     monkeypatch.setattr(device_rules, "native_cpu_bf16", lambda: native)
     with caplog.at_level("WARNING", logger="geoloc.engine.device"):
         Trainer(config(cpu_precision="32"), tmp_path / "f32")
@@ -73,8 +73,9 @@ def test_a_bf16_run_on_a_cpu_that_emulates_bf16_is_warned_with_the_way_out(tmp_p
     warned = [r.getMessage() for r in caplog.records]
     assert len(warned) == (native is False)
     if warned:
-        assert warned[0].startswith("train: the CPU autocast is bfloat16") and "trainer.cpu_precision=32" in warned[0]
-    assert not device_rules.warn_emulated_bf16(CUDA, "bf16", "x", "")  # the GPU's autocast is not this key's
+        assert warned[0].startswith(f"{tmp_path / 'bf16'}: the CPU autocast is bfloat16")
+        assert "add trainer.cpu_precision=32" in warned[0]
+    assert not device_rules.warn_emulated_bf16(CUDA, "bf16", "x")  # the GPU's autocast is not this key's
 
 
 def test_torch_is_asked_whether_this_cpu_has_native_bf16():

@@ -55,8 +55,7 @@ class CrossViewEncoder:
         self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
         self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
         self.run_precision = stored_precision(config)  # the run's autocast, as in training's validation
-        warn_emulated_bf16(device, self.run_precision["cpu_precision"], str(source),
-                           "The checkpoint was trained so, and evaluation and the apps compute as it trained.")
+        warn_emulated_bf16(device, self.run_precision["cpu_precision"], str(source))
 
     @classmethod
     def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":

@@ -26,7 +26,7 @@ import time
 import torch
 
 from geoloc import registry
-from geoloc.data.tile_context import margin_pixels
+from geoloc.data.tile_context import stitched_side
 from geoloc.engine.device import autocast
 import geoloc.models.refiners  # noqa: F401
 
@@ -67,7 +67,7 @@ def main() -> None:
         refiner = registry.build("refiner", {"name": "correlation", "width": width, "channels": width,
                                              "overlap": args.overlap, "kernel_frac": args.kernel_frac,
                                              "context": args.context}).eval()
-        wide = side + 2 * margin_pixels(side, args.margin)
+        wide = stitched_side(side, args.margin)
         query = torch.randn(1, 3, side, side)
         tiles = torch.randn(args.tiles, 4 if args.margin else 3, wide, wide)
         if args.margin:

@@ -73,6 +73,11 @@ def margin_pixels(side: int, margin: float) -> int:
     return 2 * int(round(margin * side / 2))
 
 
+def stitched_side(side: int, margin: float) -> int:
+    """The pixels across a tile read `side` pixels across with `margin` of its side around it (at_side's output)."""
+    return side + 2 * margin_pixels(side, margin)
+
+
 def stitched(tile: int, neighbourhood: np.ndarray, read: Callable[[int], np.ndarray | None],
              margin: float) -> np.ndarray | None:
     """Tile `tile` with `margin` of its side (at most 0.5) of ground beyond each edge: read(i) gives tile i's image
@@ -149,16 +154,16 @@ class TileContext:
         return cls(read, tile_neighbours(positions, extent_m, kind), margin)
 
     def image(self, tile: int, side: int | None = None) -> np.ndarray | None:
-        """Tile `tile` and its margin (stitched), at side + 2 margin_pixels(side) pixels across where `side` is
+        """Tile `tile` and its margin (stitched), at stitched_side(side) pixels across where `side` is
         given (at_side), else at the tiles' own resolution; None where the tile itself cannot be read."""
         canvas = stitched(tile, self.neighbours[tile], self.read, self.margin)
         return canvas if side is None or canvas is None else at_side(canvas, side, self.margin)
 
 
 def at_side(canvas: np.ndarray, side: int, margin: float) -> np.ndarray:
-    """A stitched tile (H' x W' x 4) at side + 2 margin_pixels(side) pixels across: the colours by area, a pixel
+    """A stitched tile (H' x W' x 4) at stitched_side(side) pixels across: the colours by area, a pixel
     covered only where every pixel it is drawn from is."""
-    size = side + 2 * margin_pixels(side, margin)
+    size = stitched_side(side, margin)
     rgb = cv2.resize(np.ascontiguousarray(canvas[..., :3]), (size, size), interpolation=cv2.INTER_AREA)
     covered = cv2.resize(np.ascontiguousarray(canvas[..., 3]), (size, size), interpolation=cv2.INTER_AREA)
     return np.dstack([rgb, np.where(covered == 255, 255, 0).astype(np.uint8)])
@@ -172,3 +177,10 @@ def tile_size(canvas_size: int, margin: float) -> int:
         if h + 2 * int(round(margin * h)) == canvas_size:
             return h
     raise ValueError(f"tile_size: no tile read with a margin of {margin} makes a canvas {canvas_size} pixels across")
+
+
+def own_pixels(canvas: np.ndarray, margin: float) -> np.ndarray:
+    """The tile's own image (H x W x 3) inside a stitched canvas: the pixels `stitched` copied from the tile."""
+    h, w = (tile_size(n, margin) for n in canvas.shape[:2])
+    top, left = (canvas.shape[0] - h) // 2, (canvas.shape[1] - w) // 2
+    return np.ascontiguousarray(canvas[top:top + h, left:left + w, :3])

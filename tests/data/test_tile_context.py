@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from geoloc.data.geo import offset_to_latlon
-from geoloc.data.tile_context import TileContext, at_side, margin_pixels, stitched, tile_neighbours, tile_size
+from geoloc.data.tile_context import (TileContext, at_side, margin_pixels, own_pixels, stitched, stitched_side,
+                                     tile_neighbours, tile_size)
 
 ORIGIN = (41.88, -87.63)  # Chicago
 TILE_PX, TILE_M = 16, 20.0  # 1.25 m a pixel
@@ -71,6 +72,7 @@ def test_a_stitched_tile_is_the_world_around_it(margin):
     for index in (5, 0, 3, 15, 9):
         out = stitched(index, neighbours[index], lambda i: tiles[i], margin)
         assert np.array_equal(out, expected(world, index, 4, int(round(margin * TILE_PX)))), index
+        assert np.array_equal(own_pixels(out, margin), tiles[index]) and own_pixels(out, margin).flags.c_contiguous
 
 
 def test_a_missing_neighbour_is_made_up_by_the_others_and_a_missing_tile_gives_none():
@@ -98,6 +100,7 @@ def test_at_side_keeps_coverage_only_where_every_source_pixel_had_it():
     canvas = context.image(0)
     assert np.array_equal(at_side(canvas, 8, 0.25), out)
     assert tile_size(canvas.shape[0], 0.25) == TILE_PX
+    assert stitched_side(8, 0.25) == out.shape[0] == out.shape[1]
 
 
 def test_tile_size_inverts_the_canvas_for_every_side():

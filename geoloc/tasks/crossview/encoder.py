@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from geoloc import registry
 from geoloc.config import ConfigError
-from geoloc.data.tile_context import TileContext, at_side, margin_pixels, tile_size
+from geoloc.data.tile_context import TileContext, at_side, stitched_side, tile_size
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine.device import autocast, resolve_device, warn_emulated_bf16
 from geoloc.tasks.crossview.crossview_config import stored_precision
@@ -194,8 +194,7 @@ class CrossViewEncoder:
     def refine_reference_side(self) -> int:
         """The side in pixels of the refiner's reference input: the tile's, plus its margin on either side where
         refiner.margin reads one."""
-        side = self.refine_config.side(self.data.aerial_size)
-        return side + 2 * margin_pixels(side, self.refine_config.margin)
+        return stitched_side(self.refine_config.side(self.data.aerial_size), self.refine_config.margin)
 
     def tile_reader(self, read, positions, extent_m, kind: str):
         """What refine's `tile` reads for gallery row i: read(i) (H×W×3 uint8, or None where it cannot be read)

@@ -16,7 +16,7 @@ import torch
 
 from geoloc.data.io import read_rgb
 from geoloc.data.retrieval_split import RetrievalSplit
-from geoloc.data.tile_context import TileContext
+from geoloc.data.tile_context import TileContext, at_side, own_pixels
 from geoloc.tasks.crossview.transforms import align_query, flip_rotate, resize, to_tensor, turned_tile
 from geoloc.tasks.crossview.views import EVAL_HEADING_SEED, crop_view
 
@@ -76,9 +76,12 @@ def refine_item(split: RetrievalSplit, index: int, street: np.ndarray, cfg, refi
     _, tiles = tile_pairs(split, refine.semi_positives and rng is not None, [index])
     tile = int(tiles[int(rng.integers(len(tiles)))]) if len(tiles) > 1 else int(tiles[0])
     frac = truth_fraction(split, index, tile)
-    aerial = read_rgb(split.references[tile])
     side = refine.side(cfg.aerial_size)
-    wide = None if context is None else context.image(tile, side)
+    if context is None:
+        aerial, wide = read_rgb(split.references[tile]), None
+    else:  # the tile is decoded once: the retrieval inputs take its own pixels, the refiner the canvas at its side
+        canvas = context.image(tile)
+        aerial, wide = own_pixels(canvas, context.margin), at_side(canvas, side, context.margin)
     if rng is not None and cfg.joint_flip_rotate:
         turns, flip = int(rng.integers(4)), bool(rng.integers(2))
         street, aerial = flip_rotate(street, aerial, turns, flip)

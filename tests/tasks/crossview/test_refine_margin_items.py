@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from geoloc.data.io import read_rgb
 
 from geoloc.data.retrieval_split import RetrievalSplit
 from geoloc.data.tile_context import TileContext
@@ -51,6 +52,8 @@ def test_the_stitched_tile_turns_with_the_tile_and_the_truth(grid_split):
         wide = item["refine_reference"]
         expected = turned_tile(still, turns, flip)
         assert torch.equal(wide, tile_input(expected, TILE_PX))
+        # the retrieval inputs' tile, cut from the same decoded canvas, is the tile file's image turned alike
+        assert np.array_equal(item["aerial"], turned_tile(read_rgb(split.references[4]), turns, flip))
         row, col = (item["tile_px"].numpy() * TILE_PX + 4).astype(int)  # the pixel of the stitched tile under it
         assert (expected[row, col, :3] == query_colour).all()
         seen.add((turns, flip))

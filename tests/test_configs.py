@@ -8,6 +8,7 @@ from geoloc import registry
 from geoloc.config import ConfigError, checked
 from geoloc.engine import TrainerConfig
 from geoloc.models.packaged_weights import is_packaged
+from geoloc.models.unfilled_init import unfilled_init
 from geoloc.tasks.crossview.data_config import parse_dataset
 
 from hydra.errors import MissingConfigException
@@ -58,7 +59,10 @@ def task_of_option(group: str, option: str) -> str:
 @pytest.mark.slow
 @pytest.mark.parametrize("group,option", every_option())
 def test_every_option_of_every_group_composes_and_builds(group, option, imagenet_stand_in, tmp_path):
-    """Each option of each geoloc/conf/ group composes for its task and builds what it configures, offline."""
+    """Each option of each geoloc/conf/ group composes for its task and builds what it configures, offline.
+
+    The networks are built under unfilled_init (no random initial weights drawn: what the test checks is that every
+    layer, shape and weight file of the option builds and loads, not torch's fills), 4 s faster for each VGG16."""
     task = task_of_option(group, option)
     overrides = [f"{group}={option}", f"run_dir={tmp_path}"]
     if task == "mmdip" and group not in ("task", "experiment"):
@@ -87,8 +91,9 @@ def test_every_option_of_every_group_composes_and_builds(group, option, imagenet
             return
         task_cfg, _, _ = parse(cfg)
         uniform = [1 / task_cfg.num_classes] * task_cfg.num_classes
-        SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, uniform).configure_optimizers()
-        JointTask(task_cfg, uniform).configure_optimizers()
+        with unfilled_init():
+            SegmentationTask(task_cfg.segmentation, task_cfg.num_classes, uniform).configure_optimizers()
+            JointTask(task_cfg, uniform).configure_optimizers()
         return
     if cfg.backbone.get("pretrained") and not is_packaged(cfg.backbone.get("weights_path")):
         # ImageNet's files are not here; weights shipped in the package (geoloc:NAME) are, and load as they are
@@ -96,7 +101,8 @@ def test_every_option_of_every_group_composes_and_builds(group, option, imagenet
                     ["backbone.pretrained=false", "backbone.model_args={dims:[8,16,32,64],depths:[1,1,1,1]}"])
         cfg = compose_train([*overrides, *stand_in] + ([f"dataset.root={tmp_path}"] if "root=" not in str(
             overrides) and cfg.dataset.get("root") not in (None,) else []))
-    task_of(cfg).configure_optimizers()
+    with unfilled_init():
+        task_of(cfg).configure_optimizers()
 
 
 @pytest.mark.parametrize("task", options("task"))

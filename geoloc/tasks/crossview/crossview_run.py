@@ -14,6 +14,7 @@ from geoloc.engine import Trainer, TrainerConfig, seed_everything
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
 from geoloc.models.crossview import CrossViewModelConfig
+from geoloc.models.unfilled_init import unfilled_init
 from geoloc.tasks.crossview import gallery_build as gallery
 from geoloc.tasks.crossview.crossview_config import (Components, CrossViewEvaluation, CrossViewTraining, parse_components,
                                            parse_evaluation, parse_training)
@@ -113,7 +114,7 @@ def evaluate(cfg: DictConfig, state: dict) -> dict:
     writes the metrics to `metrics_out`."""
     stored = stored_config(state)
     run = parse_evaluation(cfg, stored)
-    task = with_weights(build_task(run.model, run.components, _max_epochs(stored)), state, run.job.ckpt)
+    task = loaded_task(run.model, run.components, stored, state, run.job.ckpt)
     return score(run, task)
 
 
@@ -162,7 +163,16 @@ def restored_task(state: dict, ckpt, stored: DictConfig) -> CrossViewTask:
     """The task `stored` (the checkpoint's config, stored_config) describes, with the checkpoint's weights, on the
     CPU. `ckpt` names the file in errors. Used by the apps' CrossViewEncoder (encoder.py)."""
     model = checked(stored.model, CrossViewModelConfig, "model")
-    return with_weights(build_task(model, parse_components(stored), _max_epochs(stored)), state, ckpt)
+    return loaded_task(model, parse_components(stored), stored, state, ckpt)
+
+
+def loaded_task(model: CrossViewModelConfig, components: Components, stored: DictConfig, state: dict,
+                ckpt) -> CrossViewTask:
+    """The task built from a checkpoint's config and given its weights. Built under unfilled_init: no random
+    initial weight is drawn, as the strict load that follows replaces every one (unfilled_init.py)."""
+    with unfilled_init():
+        task = build_task(model, components, _max_epochs(stored))
+    return with_weights(task, state, ckpt)
 
 
 def with_weights(task: CrossViewTask, state: dict, ckpt) -> CrossViewTask:

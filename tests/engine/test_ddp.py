@@ -27,7 +27,7 @@ from geoloc.launch import hydra_hooks, run
 
 from torch.utils.data import default_collate
 
-from conftest import REPO, TINY, compose_evaluate, compose_train
+from conftest import REPO, TINY, compose_evaluate, compose_train, write_cvusa
 from helpers.crossview_runs import pairs_of, task_of
 
 BATCH = 4  # the global batch; each of 2 ranks gets BATCH // 2
@@ -95,7 +95,6 @@ def _train_steps(rank, world, port, root, out_dir):
         records.append({"loss": out["loss"].detach().clone(), "grads": grads, "queue": queue, "weights": weights,
                         "moved": moved})
     torch.save(records, out_dir / f"train_w{world}_r{rank}.pt")
-    dist.cleanup()
 
 
 def _validate(rank, world, port, root, out_dir):
@@ -105,6 +104,12 @@ def _validate(rank, world, port, root, out_dir):
     loader = trainer.loader(val_set, 3, train=False)  # 8 items, batch 3: uneven shards and batches
     metrics = trainer.validate(task, loader)
     (out_dir / f"val_w{world}_r{rank}.json").write_text(json.dumps(metrics))
+
+
+def _steps_then_validate(rank, world, port, root, out_dir):
+    """Both records from one launch of each world size: a spawned rank spends most of its time importing."""
+    _train_steps(rank, world, port, root, out_dir)
+    _validate(rank, world, port, root, out_dir)  # in the process group the steps' trainer joined
     dist.cleanup()
 
 
@@ -115,10 +120,19 @@ def _run(fn, world, root, out_dir):
         mp.spawn(fn, args=(world, free_port(), root, out_dir), nprocs=world)
 
 
+@pytest.fixture(scope="module")
+def records(tmp_path_factory):
+    """The folder where one process, then two, wrote what _train_steps and _validate saw."""
+    out_dir = tmp_path_factory.mktemp("ddp")
+    root = write_cvusa(out_dir / "cvusa", n_train=12, n_val=8)
+    for world in (1, 2):
+        _run(_steps_then_validate, world, root, out_dir)
+    return out_dir
+
+
 @pytest.mark.slow
-def test_two_process_steps_equal_one_process_step(tiny_cvusa, tmp_path):
-    _run(_train_steps, 1, tiny_cvusa, tmp_path)
-    _run(_train_steps, 2, tiny_cvusa, tmp_path)
+def test_two_process_steps_equal_one_process_step(records):
+    tmp_path = records
     single = torch.load(tmp_path / "train_w1_r0.pt", weights_only=True)
     for step, record in enumerate(single):  # the comparisons below can fail: gradients well above their atol
         grads = torch.cat([g.flatten() for g in record["grads"].values()]).abs()
@@ -150,9 +164,8 @@ def test_two_process_steps_equal_one_process_step(tiny_cvusa, tmp_path):
 
 
 @pytest.mark.slow
-def test_two_process_validation_recall_equals_one_process(tiny_cvusa, tmp_path):
-    _run(_validate, 1, tiny_cvusa, tmp_path)
-    _run(_validate, 2, tiny_cvusa, tmp_path)
+def test_two_process_validation_recall_equals_one_process(records):
+    tmp_path = records
     single = json.loads((tmp_path / "val_w1_r0.json").read_text())
     assert set(single) >= {"R@1", "R@5", "R@10", "R@1%"}
     assert single["reference_spread"] > 0.1  # distinct descriptors: the ranks are not ties decided by rounding

@@ -29,7 +29,8 @@ def _unfilled(tensor, *args, **kwargs):
 
 @contextlib.contextmanager
 def unfilled_init() -> Iterator[None]:
-    """torch.nn.init's random fills as no-ops for the duration (restored on exit, also after an error)."""
+    """torch.nn.init's random fills as no-ops for the duration, process-wide (a network another thread builds
+    meanwhile is left unfilled too); restored on exit, also after an error."""
     saved = {name: getattr(init, name) for name in RANDOM_FILLS}
     try:
         for name in RANDOM_FILLS:

@@ -14,10 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from geoloc.models.vgg import MissingWeightsError, imagenet_weights_path
+from geoloc.models.vgg import MissingWeightsError, imagenet_weights_path, vgg16_layers
 
 LAYERS = {"relu1_2": 3, "relu2_2": 8, "relu3_3": 15, "relu4_3": 22}
-VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
 _MEAN, _STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
 
 
@@ -42,14 +41,7 @@ def resolve_weights(weights: str) -> Path | None:
 def vgg16_features(n_layers: int) -> nn.Sequential:
     """The first `n_layers` modules of torchvision's vgg16().features, same indices (so state dicts load),
     built without the 120M-parameter classifier."""
-    layers, cin = [], 3
-    for v in VGG16_CFG:
-        if v == "M":
-            layers.append(nn.MaxPool2d(2, 2))
-        else:
-            layers += [nn.Conv2d(cin, v, 3, padding=1), nn.ReLU()]
-            cin = v
-    return nn.Sequential(*layers[:n_layers])
+    return nn.Sequential(*vgg16_layers(batchnorm=False, inplace=False)[:n_layers])
 
 
 class VGGPerceptualLoss(nn.Module):

@@ -6,14 +6,14 @@ from pathlib import Path
 
 import torch
 from torch import nn
-from torchvision.models import vgg16, vgg16_bn
-
 from geoloc.models import packaged_weights
 
 # The files torchvision's VGG16_Weights.IMAGENET1K_V1 / VGG16_BN_Weights.IMAGENET1K_V1 download into the hub cache.
 IMAGENET_FILE = "vgg16-397923af.pth"
 IMAGENET_BN_FILE = "vgg16_bn-6c64b313.pth"
 _TAP_CONVS = (7, 10, 13)  # conv3_3, conv4_3, conv5_3 are the 7th, 10th and 13th convolutions
+# VGG16 ("configuration D"): output channels of each 3x3 convolution, "M" a 2x2 max pool
+VGG16_LAYERS = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M")
 
 
 class MissingWeightsError(FileNotFoundError):
@@ -90,6 +90,43 @@ def check_packaged(weights_path: str | None, width: float, batchnorm: bool) -> N
                          f"backbone.batchnorm={str(fits.get('batchnorm')).lower()}.")
 
 
+def vgg16_layers(batchnorm: bool, inplace: bool = True) -> list[nn.Module]:
+    """VGG16's layers in torchvision's order and indices (3x3 convolutions, [batch norm,] ReLU; 2x2 max pools),
+    each with PyTorch's own initial weights."""
+    layers, in_channels = [], 3
+    for v in VGG16_LAYERS:
+        if v == "M":
+            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+            continue
+        conv = nn.Conv2d(in_channels, v, kernel_size=3, padding=1)
+        layers += [conv, nn.BatchNorm2d(v), nn.ReLU(inplace)] if batchnorm else [conv, nn.ReLU(inplace)]
+        in_channels = v
+    return layers
+
+
+def vgg16_features(batchnorm: bool) -> nn.Sequential:
+    """VGG16's convolutional layers (torchvision's `vgg16(_bn)().features`, the same modules at the same indices),
+    initialised with the same draws from the global generator in the same order as torchvision's constructor makes
+    them: each layer's own init as it is built, the three classifier layers' too, then VGG's init (He-normal
+    convolutions, unit batch norms, N(0, 0.01) linear layers). The classifier is dropped, but its draws are kept:
+    the generator's state after them decides every weight drawn next, so a seed gives the weights it gave when the
+    trunk was cut from torchvision's whole VGG16 (tests/models/test_vgg_draws.py builds both). Building it here
+    spares every process torchvision's import (about 3 s: it imports torch._dynamo)."""
+    features = nn.Sequential(*vgg16_layers(batchnorm))
+    classifier = [nn.Linear(512 * 7 * 7, 4096), nn.Linear(4096, 4096), nn.Linear(4096, 1000)]
+    for module in [*features, *classifier]:
+        if isinstance(module, nn.Conv2d):
+            nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
+            nn.init.constant_(module.bias, 0)
+        elif isinstance(module, nn.BatchNorm2d):
+            nn.init.constant_(module.weight, 1)
+            nn.init.constant_(module.bias, 0)
+        elif isinstance(module, nn.Linear):
+            nn.init.normal_(module.weight, 0, 0.01)
+            nn.init.constant_(module.bias, 0)
+    return features
+
+
 class VGG16Trunk(nn.Module):
     """VGG16 conv layers up to conv5_3 (no pool5), returning the three tapped maps.
 
@@ -101,7 +138,7 @@ class VGG16Trunk(nn.Module):
     def __init__(self, width: float = 1.0, pretrained: bool = False, weights_path: str | None = None,
                  batchnorm: bool = False):
         super().__init__()
-        full = (vgg16_bn if batchnorm else vgg16)(weights=None).features
+        full = vgg16_features(batchnorm)
         taps, convs = [], 0
         for i, layer in enumerate(full):
             convs += isinstance(layer, nn.Conv2d)

@@ -104,7 +104,7 @@ def vgg16_layers(batchnorm: bool, inplace: bool = True) -> list[nn.Module]:
     return layers
 
 
-def vgg16_features(batchnorm: bool) -> nn.Sequential:
+def vgg16_features_as_torchvision(batchnorm: bool) -> nn.Sequential:
     """VGG16's convolutional layers (torchvision's `vgg16(_bn)().features`, the same modules at the same indices),
     initialised with the same draws from the global generator in the same order as torchvision's constructor makes
     them: each layer's own init as it is built, the three classifier layers' too, then VGG's init (He-normal
@@ -138,7 +138,7 @@ class VGG16Trunk(nn.Module):
     def __init__(self, width: float = 1.0, pretrained: bool = False, weights_path: str | None = None,
                  batchnorm: bool = False):
         super().__init__()
-        full = vgg16_features(batchnorm)
+        full = vgg16_features_as_torchvision(batchnorm)
         taps, convs = [], 0
         for i, layer in enumerate(full):
             convs += isinstance(layer, nn.Conv2d)

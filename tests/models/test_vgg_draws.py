@@ -1,5 +1,6 @@
-"""vgg16_features builds VGG16's layers as torchvision's constructor does, draw for draw: the same trunk weights and
-the same generator state afterwards as the trunk cut from torchvision's whole VGG16, so every seed's figures stay."""
+"""vgg16_features_as_torchvision builds VGG16's layers as torchvision's constructor does, draw for draw: the same
+trunk weights and the same generator state afterwards as the trunk cut from torchvision's whole VGG16, so every
+seed's figures stay."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ def built(width: float, batchnorm: bool, seed: int):
 @pytest.mark.parametrize("width,batchnorm", [(1.0, False), (0.125, True)])  # the paper's trunk, the default's
 def test_the_trunk_and_the_generator_after_it_are_torchvisions(width, batchnorm, monkeypatch):
     own, own_state, own_next = built(width, batchnorm, seed=3)
-    monkeypatch.setattr(vgg, "vgg16_features", cut_from_torchvision)
+    monkeypatch.setattr(vgg, "vgg16_features_as_torchvision", cut_from_torchvision)
     reference, reference_state, reference_next = built(width, batchnorm, seed=3)
     assert str(own) == str(reference)  # the same modules at the same indices
     assert own.taps == reference.taps and own.channels == reference.channels

@@ -3,9 +3,10 @@
 A VGG16 trunk draws the weights of VGG16's whole classifier too (vgg.py, vgg16_features_as_torchvision): its
 124M weights are drawn twice (the layer's own init, then VGG's) and thrown away, about 2 s a trunk on one CPU
 core, 4 s for the two branches. Training keeps that draw: the generator's state after it decides every weight
-drawn later, so a seed's figures depend on it. A network restored from a checkpoint does not need it: evaluate.py, the apps and
-`geoloc bench` overwrite every parameter and buffer with the checkpoint's (a strict load), and nothing in geoloc
-draws from the global generator after the build (datasets and samplers use their own seeded generators).
+drawn later, so a seed's figures depend on it. A network restored from a checkpoint does not need it:
+evaluate.py, the apps and `geoloc bench` overwrite every parameter and buffer with the checkpoint's (a strict
+load), and nothing in geoloc draws from the global generator after the build (datasets and samplers use their own
+seeded generators).
 
 Inside `unfilled_init()`, torch.nn.init's random fills leave their tensor as it was allocated (uninitialised
 memory): the layers are built with every shape, buffer and constant as usual, and must not be used before their

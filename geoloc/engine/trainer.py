@@ -4,18 +4,17 @@ Shaped like a minimal Lightning Fabric loop (see docs/architecture.md for the Ta
 
     trainer = Trainer(cfg.trainer, run_dir, config_yaml)
     best = trainer.fit(task, train_set, val_set, batch_size=64)
+
+Its config is trainer_config.py's TrainerConfig; what a task's step sees of it is step_engine.py's Engine.
 """
 
 from __future__ import annotations
 
 import math
-import random
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
@@ -23,113 +22,17 @@ from tqdm import tqdm
 import geoloc
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.engine.device import AUTO, amp_dtype, autocast, check_device_name, on_for_cuda, warn_emulated_bf16
+from geoloc.engine.device import amp_dtype, autocast, on_for_cuda, warn_emulated_bf16
 from geoloc.engine.env import record_environment
 from geoloc.engine.logging import RunLogger
 from geoloc.engine.sampling import EpochSampler
+from geoloc.engine.step_engine import Engine
 from geoloc.engine.task import Task
-
-
-@dataclass
-class TrainerConfig:
-    max_epochs: int = 100
-    val_every_n_epochs: int = 1
-    precision: str = "32"  # "32" | "bf16" | "16": the autocast on CUDA
-    cpu_precision: str = "32"  # "32" | "bf16": the autocast on the CPU (off by default: float32 figures)
-    grad_clip: float = 0.0  # max global grad norm; 0 = off
-    accumulate: int = 1
-    num_workers: int = 4
-    pin_memory: bool = True
-    persistent_workers: bool = True
-    device: str = "auto"  # "auto" | "cpu" | "cuda" | "cuda:N" (one rule with the apps: engine/device.py)
-    seed: int = 0
-    log_every_n_steps: int = 10
-    limit_train_batches: int = 0  # 0 = all
-    # GPU-first switches: "auto" is on for CUDA and off on the CPU (where they would change the figures or cost
-    # more than they give); true/false as given. A compile that fails falls back to eager with one line.
-    channels_last: Any = "auto"  # true | false | auto
-    compile: Any = "auto"  # true | false | auto
-    progress: bool = True
-    monitor: str | None = None  # the validation metric that selects best.pt; null = the task's default
-    monitor_mode: str = "max"  # max | min
-
-    def __post_init__(self):
-        if self.max_epochs < 1:
-            raise ValueError(f"trainer.max_epochs must be >= 1, got {self.max_epochs}")
-        if self.val_every_n_epochs < 1:
-            raise ValueError(f"trainer.val_every_n_epochs must be >= 1, got {self.val_every_n_epochs}")
-        if self.precision not in ("32", "bf16", "16"):
-            raise ValueError(f"trainer.precision must be one of '32', 'bf16', '16', got {self.precision!r}")
-        if self.cpu_precision not in ("32", "bf16"):
-            raise ValueError(f"trainer.cpu_precision must be '32' or 'bf16', got {self.cpu_precision!r}")
-        if self.accumulate < 1:
-            raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
-        check_device_name(self.device, "trainer.device")
-        for key in ("channels_last", "compile"):
-            if getattr(self, key) not in (True, False, AUTO):
-                raise ValueError(f"trainer.{key} must be true, false or auto, got {getattr(self, key)!r}")
-        if self.monitor_mode not in ("max", "min"):
-            raise ValueError(f"trainer.monitor_mode must be 'max' or 'min', got {self.monitor_mode!r}")
-
-
-def seed_everything(seed: int) -> None:
-    """Seed Python, NumPy and torch; call before building the task so weight init is reproducible."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
+from geoloc.engine.trainer_config import TrainerConfig
 
 
 class NonFiniteLossError(RuntimeError):
     """Raised when a loss is NaN or inf; the last good checkpoint is left untouched."""
-
-
-class Engine:
-    """What a task sees of the trainer during a step: one AMP context, backward and step."""
-
-    def __init__(self, trainer: "Trainer"):
-        self._t = trainer
-
-    @property
-    def device(self) -> torch.device:
-        return self._t.device
-
-    @property
-    def epoch(self) -> int:
-        return self._t.epoch
-
-    @property
-    def global_step(self) -> int:
-        return self._t.global_step
-
-    @property
-    def seed(self) -> int:
-        return self._t.cfg.seed
-
-    def loader(self, dataset, batch_size: int, train: bool, batch_sampler=None) -> DataLoader:
-        """A DataLoader as the trainer builds them (seeded, DDP-sharded, workers from trainer config)."""
-        return self._t.loader(dataset, batch_size, train, batch_sampler)
-
-    def to_device(self, batch: dict, task: Task) -> dict:
-        """`batch` on the device as the trainer moves it: `task.on_after_batch_transfer`, then channels_last."""
-        return self._t._to_device(batch, task)
-
-    def autocast(self):
-        return self._t.autocast()
-
-    def backward(self, loss: torch.Tensor) -> None:
-        self._t.check_finite(loss)
-        self._t.scaler.scale(loss).backward()
-
-    def step(self, optimizer: torch.optim.Optimizer) -> None:
-        """Unscale, clip, step and zero one optimizer."""
-        t = self._t
-        if t.cfg.grad_clip > 0:
-            t.scaler.unscale_(optimizer)
-            params = [p for group in optimizer.param_groups for p in group["params"]]
-            torch.nn.utils.clip_grad_norm_(params, t.cfg.grad_clip)
-        t.scaler.step(optimizer)
-        t.scaler.update()
-        optimizer.zero_grad(set_to_none=True)
 
 
 class Trainer:
@@ -255,7 +158,8 @@ class Trainer:
         monitor = self.monitor(task)
         # what selects best.pt, in the log beside the numbers, so a table over runs picks best epochs the same way
         if not self.logger.holds("run/monitor"):  # once per log: a resume in place keeps the run's first row
-            self.logger.log({"monitor": monitor, "monitor_mode": self.cfg.monitor_mode}, self.global_step, prefix="run/")
+            self.logger.log({"monitor": monitor, "monitor_mode": self.cfg.monitor_mode}, self.global_step,
+                            prefix="run/")
 
         last_val: dict[str, float] = {}
         try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,7 +65,9 @@ def build_run(cfg: DictConfig | CrossViewTraining, run_dir: str | Path) -> Run:
     run = parse_training(cfg) if isinstance(cfg, DictConfig) else cfg
     run_dir = Path(run_dir)
     seed_everything(run.trainer.seed)
-    task = build_task(run.model, run.components, run.trainer.max_epochs)
+    # a resume replaces every weight with the checkpoint's, and its random state too: no initial weight is drawn
+    with unfilled_init() if run.job.ckpt else nullcontext():
+        task = build_task(run.model, run.components, run.trainer.max_epochs)
     source = None
     if run.job.init_from:
         source = ckpt_io.init_from(task, run.job.init_from, fresh=INIT_FROM_FRESH)

@@ -52,6 +52,21 @@ def tiny_folder(root: Path, n_train: int = 8, n_val: int = 6) -> Path:
     return root
 
 
+@pytest.fixture(autouse=True, scope="module")
+def registry_restored_after():
+    """What this file's plug-ins register is gone after it: the registry's tables as they were, and the plug-in
+    modules forgotten, so a later file in the same process that imports one registers it anew."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(registry, "_kinds", dict(registry._kinds))
+        mp.setattr(registry, "_registry", {kind: dict(entries) for kind, entries in registry._registry.items()})
+        mp.setattr(registry, "_loaded", set(registry._loaded))
+        before = set(sys.modules)
+        yield
+    for name in set(sys.modules) - before:
+        if name == "plugins" or name.startswith("plugins."):
+            del sys.modules[name]
+
+
 QUIET = ["trainer.num_workers=0", "trainer.progress=false", "trainer.device=cpu", "figures=false", "model.dim=16"]
 
 

@@ -3,22 +3,17 @@ step. The trainer owns the state; the task calls only these."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch.utils.data import DataLoader
 
 from geoloc.engine.task import Task
 
-if TYPE_CHECKING:
-    from geoloc.engine.trainer import Trainer
-
 
 class Engine:
     """What a task sees of the trainer during a step: one AMP context, backward and step."""
 
-    def __init__(self, trainer: "Trainer"):
-        self._t = trainer
+    def __init__(self, trainer):
+        self._t = trainer  # the Trainer (trainer.py) whose state it shows; not imported here, which imports this
 
     @property
     def device(self) -> torch.device:

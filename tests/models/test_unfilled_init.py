@@ -7,8 +7,10 @@ import torch
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.models.unfilled_init import RANDOM_FILLS, unfilled_init
 from geoloc.models.vgg import VGG16Trunk
-from geoloc.tasks.crossview.crossview_run import restored_task, stored_config
+from geoloc.tasks.crossview.crossview_run import build_run, restored_task, stored_config
 from torch.nn import init
+
+from conftest import TINY, compose_train
 
 
 def test_no_fill_draws_and_the_fills_come_back_after_an_error():
@@ -38,3 +40,41 @@ def test_a_restored_task_draws_nothing_and_holds_exactly_the_checkpoints_weights
     assert own.keys() == state["task"].keys()
     for key, value in state["task"].items():
         assert torch.equal(own[key], value), key
+
+
+def test_a_resume_builds_its_task_without_drawing_where_a_fresh_run_draws(finished_run, tmp_path):
+    root, run_dir = finished_run
+    common = [*TINY, f"dataset.root={root}", "trainer.max_epochs=2"]
+    draws = []
+    for name, extra in (("fresh", []), ("resumed", [f"ckpt={run_dir / 'last.pt'}"])):
+        cfg = compose_train([*common, f"run_dir={tmp_path / name}", *extra])
+        torch.manual_seed(0)
+        before = torch.get_rng_state()
+        with patched_fills_counted() as counted:
+            build_run(cfg, tmp_path / name)
+        draws.append(counted)
+        assert torch.equal(torch.get_rng_state(), before) == (name == "resumed"), name
+    fresh, resumed = draws
+    assert sum(fresh.values()) > 0 and sum(resumed.values()) == 0  # the checkpoint will replace every weight
+
+
+class patched_fills_counted:
+    """Counts the calls that reach torch.nn.init's random fills (a fill that unfilled_init turns off never does)."""
+
+    def __enter__(self) -> dict:
+        self.saved = {name: getattr(init, name) for name in RANDOM_FILLS}
+        self.counts = dict.fromkeys(RANDOM_FILLS, 0)
+
+        def counting(name, fill):
+            def call(*args, **kwargs):
+                self.counts[name] += 1
+                return fill(*args, **kwargs)
+            return call
+
+        for name, fill in self.saved.items():
+            setattr(init, name, counting(name, fill))
+        return self.counts
+
+    def __exit__(self, *exc) -> None:
+        for name, fill in self.saved.items():
+            setattr(init, name, fill)

@@ -30,6 +30,7 @@ from geoloc.tasks.mmdip.segmentation import SegmentationTask
 from conftest import REPO, compose_evaluate, compose_train, write_cvusa
 from helpers.crossview_runs import split_of, task_of
 from helpers.dynamic_data import TINY_MMDIP, evaluate, write_tiny_dynamic
+from helpers.registry_tables import registry_copied
 
 PLUGINS = Path(__file__).parent / "plugins"
 SEARCHPATH = f"hydra.searchpath=[file://{PLUGINS / 'conf'}]"
@@ -57,9 +58,7 @@ def registry_restored_after():
     """What this file's plug-ins register is gone after it: the registry's tables as they were, and the plug-in
     modules forgotten, so a later file in the same process that imports one registers it anew."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(registry, "_kinds", dict(registry._kinds))
-        mp.setattr(registry, "_registry", {kind: dict(entries) for kind, entries in registry._registry.items()})
-        mp.setattr(registry, "_loaded", set(registry._loaded))
+        registry_copied(mp)
         before = set(sys.modules)
         yield
     for name in set(sys.modules) - before:

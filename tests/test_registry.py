@@ -13,14 +13,13 @@ from geoloc.config import ConfigError
 from geoloc.launch.run import find_task
 
 from conftest import REPO
+from helpers.registry_tables import registry_copied
 
 
 @pytest.fixture
 def scratch(monkeypatch):
     """The registry's tables as copies, so what a test declares or registers is gone after it."""
-    monkeypatch.setattr(registry, "_kinds", dict(registry._kinds))
-    monkeypatch.setattr(registry, "_registry", {kind: dict(entries) for kind, entries in registry._registry.items()})
-    monkeypatch.setattr(registry, "_loaded", set(registry._loaded))
+    registry_copied(monkeypatch)
 
 
 def widget(size: int = 1) -> dict:

@@ -42,39 +42,26 @@ def test_a_restored_task_draws_nothing_and_holds_exactly_the_checkpoints_weights
         assert torch.equal(own[key], value), key
 
 
-def test_a_resume_builds_its_task_without_drawing_where_a_fresh_run_draws(finished_run, tmp_path):
+def test_a_resume_builds_its_task_without_drawing_where_a_fresh_run_draws(finished_run, tmp_path, monkeypatch):
     root, run_dir = finished_run
     common = [*TINY, f"dataset.root={root}", "trainer.max_epochs=2"]
-    draws = []
+    counts = fills_counted(monkeypatch)
+    drawn = {}
     for name, extra in (("fresh", []), ("resumed", [f"ckpt={run_dir / 'last.pt'}"])):
-        cfg = compose_train([*common, f"run_dir={tmp_path / name}", *extra])
-        torch.manual_seed(0)
-        before = torch.get_rng_state()
-        with patched_fills_counted() as counted:
-            build_run(cfg, tmp_path / name)
-        draws.append(counted)
-        assert torch.equal(torch.get_rng_state(), before) == (name == "resumed"), name
-    fresh, resumed = draws
-    assert sum(fresh.values()) > 0 and sum(resumed.values()) == 0  # the checkpoint will replace every weight
+        before, torch_state = sum(counts.values()), torch.manual_seed(0).get_state()  # build_run seeds 0 too
+        build_run(compose_train([*common, f"run_dir={tmp_path / name}", *extra]), tmp_path / name)
+        drawn[name] = sum(counts.values()) - before
+        assert torch.equal(torch.get_rng_state(), torch_state) == (name == "resumed"), name
+    assert drawn["fresh"] > 0 and drawn["resumed"] == 0  # the checkpoint will replace every weight
 
 
-class patched_fills_counted:
-    """Counts the calls that reach torch.nn.init's random fills (a fill that unfilled_init turns off never does)."""
-
-    def __enter__(self) -> dict:
-        self.saved = {name: getattr(init, name) for name in RANDOM_FILLS}
-        self.counts = dict.fromkeys(RANDOM_FILLS, 0)
-
-        def counting(name, fill):
-            def call(*args, **kwargs):
-                self.counts[name] += 1
-                return fill(*args, **kwargs)
-            return call
-
-        for name, fill in self.saved.items():
-            setattr(init, name, counting(name, fill))
-        return self.counts
-
-    def __exit__(self, *exc) -> None:
-        for name, fill in self.saved.items():
-            setattr(init, name, fill)
+def fills_counted(monkeypatch) -> dict:
+    """{fill: calls} of torch.nn.init's random fills from now on (a fill that unfilled_init turns off never
+    counts); monkeypatch puts the fills back after the test."""
+    counts = dict.fromkeys(RANDOM_FILLS, 0)
+    for name in RANDOM_FILLS:
+        def call(*args, _name=name, _fill=getattr(init, name), **kwargs):
+            counts[_name] += 1
+            return _fill(*args, **kwargs)
+        monkeypatch.setattr(init, name, call)
+    return counts

@@ -50,10 +50,10 @@ def resolve_device(device: str | None = None) -> torch.device:
 
 def amp_dtype(precision: str, device: torch.device, cpu_precision: str = "32") -> torch.dtype | None:
     """The autocast dtype on `device`: trainer.precision ("32" | "bf16" | "16") on CUDA, trainer.cpu_precision
-    ("32" | "bf16") on the CPU; None (no autocast) for "32". The CPU's is a key of its own, off by default, so a
-    recipe that asks for bf16 on the GPU keeps its CPU figures those of float32."""
+    ("32" | "bf16" | "auto", cpu_bf16) on the CPU; None (no autocast) for "32". The CPU's is a key of its own, off by
+    default, so a recipe that asks for bf16 on the GPU keeps its CPU figures those of float32."""
     if device.type == "cpu":
-        return torch.bfloat16 if cpu_precision == "bf16" else None
+        return torch.bfloat16 if cpu_bf16(cpu_precision) else None
     if device.type != "cuda" or precision == "32":
         return None
     return torch.bfloat16 if precision == "bf16" else torch.float16
@@ -68,6 +68,22 @@ def native_cpu_bf16() -> bool | None:
         return None
 
 
+def cpu_bf16(cpu_precision: str) -> bool:
+    """Whether trainer.cpu_precision computes in bfloat16 on this CPU: "bf16" always, "auto" only where the CPU has
+    a native bfloat16 path (native_cpu_bf16 is True; where torch cannot say, float32), "32" never."""
+    return cpu_precision == "bf16" or (cpu_precision == AUTO and native_cpu_bf16() is True)
+
+
+def log_cpu_precision(device: torch.device, cpu_precision: str, where: str) -> None:
+    """Say what trainer.cpu_precision=auto resolved to on this CPU (an info line), or warn of an emulated bf16
+    (warn_emulated_bf16); nothing for "32" or on CUDA."""
+    if device.type == "cpu" and cpu_precision == AUTO:
+        log.info("%s: trainer.cpu_precision=auto computes in %s on this CPU", where,
+                 "bfloat16 (it has a native bfloat16 path)" if cpu_bf16(AUTO) else
+                 "float32 (it has no native bfloat16 path that torch reports)")
+    warn_emulated_bf16(device, cpu_precision, where)
+
+
 def warn_emulated_bf16(device: torch.device, cpu_precision: str, where: str) -> bool:
     """Log a warning when a bfloat16 autocast is asked for on a CPU that would emulate it, and say what to do: the
     refine_vigor recipe's batch took 45 s under bf16 on an AVX2 CPU against 1.5 s in float32, where a CPU with
@@ -77,7 +93,8 @@ def warn_emulated_bf16(device: torch.device, cpu_precision: str, where: str) -> 
         return False
     log.warning("%s: the CPU autocast is bfloat16 (trainer.cpu_precision=bf16), but this CPU has no native bfloat16 "
                 "path (no AVX-512 or AMX: torch emulates it), so it computes many times slower than float32 (about "
-                "30x measured on an AVX2 CPU). To train in float32, add trainer.cpu_precision=32 to train.py's "
+                "30x measured on an AVX2 CPU). To train in float32, add trainer.cpu_precision=32 (or auto: bf16 "
+                "only where the CPU has it) to train.py's "
                 "command line; a checkpoint trained in bfloat16 is evaluated and served in bfloat16, as it trained.",
                 where)
     return True

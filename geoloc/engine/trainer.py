@@ -22,7 +22,7 @@ from tqdm import tqdm
 import geoloc
 from geoloc.engine import checkpoint as ckpt_io
 from geoloc.engine import distributed as dist
-from geoloc.engine.device import amp_dtype, autocast, on_for_cuda, warn_emulated_bf16
+from geoloc.engine.device import amp_dtype, autocast, log_cpu_precision, on_for_cuda
 from geoloc.engine.env import record_environment
 from geoloc.engine.logging import RunLogger
 from geoloc.engine.sampling import EpochSampler
@@ -42,7 +42,7 @@ class Trainer:
         self.config_yaml = config_yaml
         self.device = dist.init_from_env(cfg.device)
         self.amp_dtype = amp_dtype(cfg.precision, self.device, cfg.cpu_precision)
-        warn_emulated_bf16(self.device, cfg.cpu_precision, str(self.run_dir))
+        log_cpu_precision(self.device, cfg.cpu_precision, str(self.run_dir))
         # trainer.channels_last / trainer.compile resolved for this device ("auto": on for CUDA only)
         self.channels_last = on_for_cuda(cfg.channels_last, self.device)
         self.compile = on_for_cuda(cfg.compile, self.device)

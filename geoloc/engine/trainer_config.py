@@ -17,7 +17,7 @@ class TrainerConfig:
     max_epochs: int = 100
     val_every_n_epochs: int = 1
     precision: str = "32"  # "32" | "bf16" | "16": the autocast on CUDA
-    cpu_precision: str = "32"  # "32" | "bf16": the autocast on the CPU (off by default: float32 figures)
+    cpu_precision: str = "32"  # "32" | "bf16" | "auto" (bf16 where the CPU has it natively): the autocast on the CPU
     grad_clip: float = 0.0  # max global grad norm; 0 = off
     accumulate: int = 1
     num_workers: int = 4
@@ -42,8 +42,8 @@ class TrainerConfig:
             raise ValueError(f"trainer.val_every_n_epochs must be >= 1, got {self.val_every_n_epochs}")
         if self.precision not in ("32", "bf16", "16"):
             raise ValueError(f"trainer.precision must be one of '32', 'bf16', '16', got {self.precision!r}")
-        if self.cpu_precision not in ("32", "bf16"):
-            raise ValueError(f"trainer.cpu_precision must be '32' or 'bf16', got {self.cpu_precision!r}")
+        if self.cpu_precision not in ("32", "bf16", AUTO):
+            raise ValueError(f"trainer.cpu_precision must be '32', 'bf16' or 'auto', got {self.cpu_precision!r}")
         if self.accumulate < 1:
             raise ValueError(f"trainer.accumulate must be >= 1, got {self.accumulate}")
         check_device_name(self.device, "trainer.device")

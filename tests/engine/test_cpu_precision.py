@@ -28,10 +28,27 @@ def test_each_device_reads_its_own_key():
     assert TrainerConfig().cpu_precision == "32"
 
 
-@pytest.mark.parametrize("value", ["16", "fp32", "bf16-cpu"])
-def test_a_cpu_precision_other_than_32_or_bf16_is_refused(value):
-    with pytest.raises(ConfigError, match="trainer.cpu_precision must be '32' or 'bf16'"):
+@pytest.mark.parametrize("value", ["16", "fp32", "bf16-cpu", "Auto"])
+def test_a_cpu_precision_other_than_32_bf16_or_auto_is_refused(value):
+    with pytest.raises(ConfigError, match="trainer.cpu_precision must be '32', 'bf16' or 'auto'"):
         checked({"cpu_precision": value}, TrainerConfig, "trainer")
+
+
+@pytest.mark.parametrize("native, dtype", [(True, torch.bfloat16), (False, None), (None, None)])
+def test_auto_is_bf16_only_where_torch_says_the_cpu_has_it(monkeypatch, caplog, tmp_path, native, dtype):
+    """auto: bfloat16 where the CPU has a native path, float32 where it would emulate it or torch cannot say, never
+    warned of, and said at start-up; the explicit keys and CUDA's autocast do not ask."""
+    monkeypatch.setattr(device_rules, "native_cpu_bf16", lambda: native)
+    assert amp_dtype("32", CPU, "auto") == dtype
+    assert amp_dtype("32", CPU, "bf16") == torch.bfloat16 and amp_dtype("32", CPU, "32") is None
+    assert amp_dtype("bf16", CUDA, "auto") == torch.bfloat16 and amp_dtype("32", CUDA, "auto") is None
+    with caplog.at_level("INFO", logger="geoloc.engine.device"):
+        trainer = Trainer(config(cpu_precision="auto"), tmp_path / "auto")
+    assert trainer.amp_dtype == dtype
+    said = [r for r in caplog.records if r.name == "geoloc.engine.device"]
+    assert [r.levelname for r in said] == ["INFO"]
+    assert said[0].getMessage().startswith(f"{tmp_path / 'auto'}: trainer.cpu_precision=auto computes in "
+                                           f"{'bfloat16' if native else 'float32'}")
 
 
 def test_the_training_step_computes_in_bf16_only_when_asked(tmp_path):
@@ -74,7 +91,7 @@ def test_a_bf16_run_on_a_cpu_that_emulates_bf16_is_warned_with_the_way_out(tmp_p
     assert len(warned) == (native is False)
     if warned:
         assert warned[0].startswith(f"{tmp_path / 'bf16'}: the CPU autocast is bfloat16")
-        assert "add trainer.cpu_precision=32" in warned[0]
+        assert "add trainer.cpu_precision=32 (or auto" in warned[0]
     assert not device_rules.warn_emulated_bf16(CUDA, "bf16", "x")  # the GPU's autocast is not this key's
 
 

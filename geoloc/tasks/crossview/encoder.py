@@ -26,7 +26,7 @@ from geoloc import registry
 from geoloc.config import ConfigError
 from geoloc.data.tile_context import TileContext, at_side, stitched_side, tile_size
 from geoloc.engine import checkpoint as ckpt_io
-from geoloc.engine.device import autocast, resolve_device, warn_emulated_bf16
+from geoloc.engine.device import autocast, log_cpu_precision, resolve_device
 from geoloc.tasks.crossview.crossview_config import stored_precision
 from geoloc.tasks.crossview.data_config import parse_dataset
 from geoloc.tasks.crossview.heading import query_inputs
@@ -55,7 +55,7 @@ class CrossViewEncoder:
         self.device, self.source, self.epoch = device, Path(source), state.get("epoch")
         self._recorded = dict((state.get("task_info") or {}).get("query_view") or {})
         self.run_precision = stored_precision(config)  # the run's autocast, as in training's validation
-        warn_emulated_bf16(device, self.run_precision["cpu_precision"], str(source))
+        log_cpu_precision(device, self.run_precision["cpu_precision"], str(source))
 
     @classmethod
     def load(cls, ckpt, use: str = "this app", device: str | None = None) -> "CrossViewEncoder":

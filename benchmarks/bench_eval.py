@@ -39,43 +39,8 @@ import sys
 import time
 
 import numpy as np
-
-
-def make_data(n_ref, n_query, dim, noise, seed, rank=64, iso=0.1):
-    """Unit descriptors with a low intrinsic dimension, as learned ones have (isotropic random vectors would
-    leave IVF nothing to cluster): reference = z W + a little isotropic noise, z ~ N(0, I_rank); query i is
-    z_i + noise * N(0, I_rank) mapped by the same W."""
-    rng = np.random.default_rng(seed)
-    # float32 throughout (numpy >= 2 would promote to float64 on a np.sqrt scalar): the exact torch search keeps
-    # the dtype it is given, and float64 would time it on twice the bytes.
-    w = rng.standard_normal((rank, dim), dtype=np.float32) / np.float32(np.sqrt(rank))
-    z = rng.standard_normal((n_ref, rank), dtype=np.float32)
-    ref = z @ w
-    scale = np.float32(iso / np.sqrt(dim)) * np.linalg.norm(ref, axis=1, keepdims=True)
-    for s in range(0, n_ref, 100_000):  # in blocks: no second n_ref x dim temporary
-        ref[s:s + 100_000] += scale[s:s + 100_000] * rng.standard_normal((min(100_000, n_ref - s), dim),
-                                                                          dtype=np.float32)
-    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
-    query = (z[:n_query] + noise * rng.standard_normal((n_query, rank), dtype=np.float32)) @ w
-    query /= np.linalg.norm(query, axis=1, keepdims=True)
-    return query, ref
-
-
-def latent_map(dim, seed, rank=64):
-    rng = np.random.default_rng(seed)
-    return rng.standard_normal((rank, dim), dtype=np.float32) / np.float32(np.sqrt(rank))
-
-
-def stream_block(w, start, stop, seed, iso=0.1):
-    """References start..stop of a stream of make_data's kind, made from (seed, block start) alone: any block can
-    be made again without the others. Returns (latent codes, unit references)."""
-    rng = np.random.default_rng([seed, start])
-    z = rng.standard_normal((stop - start, w.shape[0]), dtype=np.float32)
-    ref = z @ w
-    scale = np.float32(iso / np.sqrt(w.shape[1])) * np.linalg.norm(ref, axis=1, keepdims=True)
-    ref += scale * rng.standard_normal(ref.shape, dtype=np.float32)
-    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
-    return z, ref
+from process_memory import load_average, mapped_rss, reset_peak, status_mib
+from synthetic_descriptors import latent_map, make_data, stream_block
 
 
 def run_huge(args):
@@ -99,7 +64,7 @@ def run_huge(args):
     knobs = (dict(coarse_m=args.coarse_m) if args.huge_kind == "pq_sq8" else
              dict(nlist=args.nlist, m=args.m, nprobe=args.huge_nprobe[0]))
     codebook = GalleryIndex(dim, backend="faiss", kind=args.huge_kind, k_factor=IVF_K_FACTOR, **knobs)
-    base = _status("VmRSS")
+    base = status_mib("VmRSS")
     exact_peak = reset_peak()
     start = time.perf_counter()
     codebook.train(stream_block(w, 0, min(args.train_points, n), args.seed)[1])
@@ -138,7 +103,7 @@ def run_huge(args):
         build_s = time.perf_counter() - start - exact_s
         res = {"case": "huge", "kind": args.huge_kind, "shards": args.huge_shards, "n_ref": n, "dim": dim,
                "n_query": nq, "build_s": build_s, "merge_s": merge_s,
-               "build_peak_rise_mib": _status("VmHWM") - base, "peak_is_exact": exact_peak,
+               "build_peak_rise_mib": status_mib("VmHWM") - base, "peak_is_exact": exact_peak,
                "exact_recall": {"R@1": float(np.mean(best_row == np.arange(nq)))}}
         folder = os.path.join(tmp, "gallery")
         os.makedirs(folder)
@@ -150,9 +115,9 @@ def run_huge(args):
         res["rows_bytes"] = sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder)
                                 if f.endswith(".f16"))
         del index
-        before_load = {k: _status(k) for k in ("RssAnon", "RssFile")}
+        before_load = {k: status_mib(k) for k in ("RssAnon", "RssFile")}
         loaded, res["load_s"] = timed(lambda: GalleryIndex.load(path))
-        res["rss_after_load_mib"] = sum(_status(k) - before_load[k] for k in before_load)
+        res["rss_after_load_mib"] = sum(status_mib(k) - before_load[k] for k in before_load)
         def searched(nprobe):  # the nq queries one at a time -> {nprobe, ms_per_query, recall}
             rows = np.zeros((nq, 10), np.int64)
             t = time.perf_counter()
@@ -163,38 +128,15 @@ def run_huge(args):
 
         res["sweep"] = [searched(args.huge_nprobe[0])]
         res["ms_per_query"], res["recall"] = res["sweep"][0]["ms_per_query"], res["sweep"][0]["recall"]
-        res["rss_after_search_mib"] = sum(_status(k) - before_load[k] for k in before_load)
-        res["own_after_search_mib"] = _status("RssAnon") - before_load["RssAnon"]
+        res["rss_after_search_mib"] = sum(status_mib(k) - before_load[k] for k in before_load)
+        res["own_after_search_mib"] = status_mib("RssAnon") - before_load["RssAnon"]
         res["mapped_after_search_mib"] = mapped_rss(folder)
         for nprobe in args.huge_nprobe[1:] if args.huge_kind == "ivfpq_disk" else ():  # the same loaded gallery
             loaded.set_search_params(nprobe=nprobe)
             res["sweep"].append(searched(nprobe))
-    res["peak_mib"] = _status("VmHWM") - base
+    res["peak_mib"] = status_mib("VmHWM") - base
     res["load"] = load_average()
     print(json.dumps(res))
-
-
-def _status(field):
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024  # kB -> MiB
-    return float("nan")
-
-
-def reset_peak():
-    """Reset VmHWM to the current RSS (Linux >= 4.0); returns False where that is not allowed."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def load_average():
-    with open("/proc/loadavg") as f:
-        return " ".join(f.read().split()[:3])
 
 
 def timed(fn):
@@ -218,7 +160,7 @@ def run_case(args):
     dim = args.dim if small else args.large_dim
     query, ref = make_data(n_ref, n_query, dim, args.noise if small else args.large_noise, args.seed,
                              rank=args.rank)
-    base = _status("VmRSS")
+    base = status_mib("VmRSS")
     exact_peak = reset_peak()
     res = {"case": args.case, "n_ref": n_ref, "n_query": n_query, "dim": dim}
 
@@ -236,7 +178,7 @@ def run_case(args):
         res["recall"] = recall_from_topk(idx.numpy())
     else:
         res.update(run_approximate(args, args.case.removeprefix("large-"), query, ref))
-    res["peak_mib"] = res.pop("peak_before_size_mib", _status("VmHWM")) - base
+    res["peak_mib"] = res.pop("peak_before_size_mib", status_mib("VmHWM")) - base
     res["peak_is_exact"] = exact_peak
     res["load"] = load_average()
     print(json.dumps(res))
@@ -276,10 +218,10 @@ def run_approximate(args, kind, query, ref):
             (_, idx), time_s = timed(lambda: index.search(query, 10))
             times.append(time_s)
         sweep.append(dict(knob=knob, value=value, times_s=times, recall=recall_from_topk(idx.numpy())))
-    peak = _status("VmHWM")  # before serialize_index makes its copy
+    peak = status_mib("VmHWM")  # before serialize_index makes its copy
     if disk:
         before = disk.pop("rss_before_load")
-        disk["rss_after_search_mib"] = {**{k: _status(k) - before[k] for k in before}, **mapped_rss(disk["folder"])}
+        disk["rss_after_search_mib"] = {**{k: status_mib(k) - before[k] for k in before}, **mapped_rss(disk["folder"])}
     return dict(build_s=build_s, sweep=sweep, peak_before_size_mib=peak,
                 index_mib=len(faiss.serialize_index(index._index)) / 2**20, **disk)
 
@@ -298,27 +240,10 @@ def reopened(folder):
     from geoloc.eval import GalleryIndex
 
     rows = sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder) if f.endswith(".f16"))
-    before = {k: _status(k) for k in ("RssAnon", "RssFile")}  # memory of its own; pages of mapped files
+    before = {k: status_mib(k) for k in ("RssAnon", "RssFile")}  # memory of its own; pages of mapped files
     loaded = GalleryIndex.load(os.path.join(folder, "gallery.pt"))
-    return loaded, {"rss_before_load": before, "rss_after_load_mib": {k: _status(k) - before[k] for k in before},
+    return loaded, {"rss_before_load": before, "rss_after_load_mib": {k: status_mib(k) - before[k] for k in before},
                     "rows_file_mib": rows / 2**20, "folder": folder}
-
-
-def mapped_rss(folder):
-    """MiB resident of the files mapped from `folder`, by suffix (/proc/self/smaps): the codes (.faiss) and the
-    float16 rows (.f16); capped at the files' sizes, since a file mapped several times counts its pages in each
-    mapping."""
-    out, suffix = {".faiss": 0.0, ".f16": 0.0}, None
-    with open("/proc/self/smaps") as f:
-        for line in f:
-            head = line.split()
-            if len(head) >= 6 and "-" in head[0]:  # a mapping's first line ends with its path
-                suffix = next((s for s in out if head[-1].startswith(folder) and head[-1].endswith(s)), None)
-            elif suffix and line.startswith("Rss:"):
-                out[suffix] += int(head[1]) / 1024
-    sizes = {s: sum(os.path.getsize(os.path.join(folder, f)) for f in os.listdir(folder) if f.endswith(s)) / 2**20
-             for s in out}
-    return {s: min(out[s], sizes[s]) for s in out}
 
 
 def recall_from_topk(idx):
@@ -409,8 +334,9 @@ def main(args, argv):
               f"  {r['ms_per_query']:.2f} ms/query; R@1 {100 * r['recall']['R@1']:.1f}% against the exact "
               f"{100 * r['exact_recall']['R@1']:.1f}% ({kept:.1f}% kept)   load avg {r['load']}")
         for row in r["sweep"][1:]:
-            print(f"  nprobe {row['nprobe']}: {row['ms_per_query']:.2f} ms/query; R@1 {100 * row['recall']['R@1']:.1f}% "
-                  f"({100 * row['recall']['R@1'] / r['exact_recall']['R@1']:.1f}% kept)")
+            r1 = row["recall"]["R@1"]
+            print(f"  nprobe {row['nprobe']}: {row['ms_per_query']:.2f} ms/query; R@1 {100 * r1:.1f}% "
+                  f"({100 * r1 / r['exact_recall']['R@1']:.1f}% kept)")
     if not all(r["peak_is_exact"] for r in results):
         print("  (peak RSS could not be reset after the data was made: peaks include making the data)")
 

@@ -11,8 +11,8 @@ load). The target is <= 1.05x for both (issue 21).
   measures that). The trainer's own work is all included: its seeded sampler, the finite-loss check, the logger,
   the progress bookkeeping and the atomic checkpoint write after each epoch.
 - eval: `geoloc.eval.retrieval_metrics` (the one scorer: R@1, R@5, R@10, R@1%, descriptors checked) at CVUSA's
-  size (8,884 x 8,884, D 4,096; bench_eval.py's low-rank unit descriptors, the query a noisy copy) against a bare
-  chunked `q @ r.T` with a count of the references above the positive.
+  size (8,884 x 8,884, D 4,096; bench_eval.py's low-rank unit descriptors, synthetic_descriptors.py, the query a
+  noisy copy) against a bare chunked `q @ r.T` with a count of the references above the positive.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_overhead.py                      # both cases, 1 thread
     OMP_NUM_THREADS=1 python benchmarks/bench_overhead.py --cases eval --rounds 5
@@ -129,7 +129,7 @@ def bare_recall(query: torch.Tensor, reference: torch.Tensor, ks) -> dict:
 
 
 def run_eval(args) -> dict:
-    from bench_eval import make_data  # the eval benchmark's descriptors: low intrinsic dimension, as learned ones
+    from synthetic_descriptors import make_data  # bench_eval.py's descriptors: a low intrinsic dimension, as learned
 
     query, reference = (torch.from_numpy(a) for a in make_data(args.n, args.n, args.dim, args.noise, seed=0))
     ks = (1, 5, 10, max(1, args.n // 100))

@@ -17,7 +17,7 @@ def load(name):
 
 
 def test_the_bare_recall_is_geolocs_recall():
-    bench, data = load("bench_overhead"), load("bench_eval")
+    bench, data = load("bench_overhead"), load("synthetic_descriptors")
     query, reference = (torch.from_numpy(a) for a in data.make_data(2500, 2500, 32, noise=0.3, seed=1, rank=8))
     bare = bench.bare_recall(query, reference, (1, 5, 10, 25))  # 2,500 queries: three chunks of 1,024
     ours = retrieval_metrics(query, reference)

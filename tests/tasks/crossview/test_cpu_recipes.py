@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 from geoloc import registry
 from geoloc.launch import run
 from geoloc.synthetic import generate
@@ -25,7 +26,9 @@ def test_the_recipes_choose_what_they_say():
     assert (cross.dataset.preset, cross.dataset.setting, cross.trainer.max_epochs) == ("vigor_large", "cross_area", 120)
     assert (cross.dataset.alignment, cross.dataset.camera_height_m) == ("ground", 2.2)  # the renderer's camera
     assert (cross.loss.name, cross.sampler.name, cross.dataset.cache_decoded) == ("infonce", "no_duplicate", True)
-    assert (cross.optim.weight_decay, cross.backbone.model_args.drop_path_rate) == (0.1, 0.2)  # vigor_cpu: 0.01, 0
+    assert cross.optim.weight_decay == 0.1 and vigor.optim.weight_decay == 0.01
+    assert (vigor.backbone.name, cross.backbone.name, cross.backbone.width) == ("timm", "vgg16", 0.125)
+    assert (cross.backbone.pretrained, cross.backbone.weights_path) == (True, "geoloc:synthetic_vgg16_cpu")
     u1652 = compose_train(["experiment=u1652_cpu"])
     assert (u1652.dataset.name, u1652.dataset.preset, u1652.dataset.alignment) == ("u1652", "u1652_medium", "none")
     assert (u1652.loss.name, u1652.sampler.name, u1652.dataset.aerial_rotation_deg) == ("infonce", "no_duplicate", 90)
@@ -36,18 +39,15 @@ def test_the_recipes_choose_what_they_say():
     assert compose_train([]).views.name == "single"  # the default run has one query view
 
 
-def test_the_cross_area_recipe_builds_its_stochastic_depth():
-    """backbone.model_args reaches timm: every ConvNeXt block but the first drops its residual branch, at rates
-    rising to the recipe's 0.2 in the last block (timm's linear rule); vigor_cpu has none."""
-    from timm.layers import DropPath
+def test_the_cross_area_recipe_starts_from_the_shipped_trunk():
+    """vigor_cross_cpu's one shared network starts from geoloc:synthetic_vgg16_cpu, tensor for tensor, where
+    vigor_cpu's ConvNeXt starts from a random draw."""
+    from geoloc.models import packaged_weights
 
-    def drop_rates(experiment: str) -> list[float]:
-        body = registry.build("backbone", compose_train([f"experiment={experiment}"]).backbone)
-        return [m.drop_prob for m in body.modules() if isinstance(m, DropPath)]
-
-    rates = drop_rates("vigor_cross_cpu")
-    assert len(rates) == 5 and rates[-1] == pytest.approx(0.2)  # depths 1-1-3-1: six blocks, the first at rate 0
-    assert drop_rates("vigor_cpu") == []
+    shipped = torch.load(packaged_weights.packaged_file("geoloc:synthetic_vgg16_cpu", "vgg16"), map_location="cpu",
+                         weights_only=True)
+    trunk = registry.build("backbone", compose_train(["experiment=vigor_cross_cpu"]).backbone).state_dict()
+    assert set(trunk) == set(shipped) and all(torch.equal(trunk[k], shipped[k]) for k in shipped)
 
 
 def last_validation(run_dir) -> dict:
